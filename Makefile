@@ -1,0 +1,53 @@
+# firp: one entry point for developers and CI. `make test` on a fresh machine installs everything
+# (system GL libraries for headless MuJoCo rendering, then a virtualenv with all extras) and runs
+# the test suite; a second `make test` reuses the install (stamp files) unless pyproject.toml changed.
+
+PYTHON ?= python3
+VENV ?= .venv
+VENV_PY := $(VENV)/bin/python
+PIP_STAMP := $(VENV)/.installed-dev.stamp
+APT_STAMP := .make/apt-deps.stamp
+# Headless rendering: EGL by default; `MUJOCO_GL=osmesa make test` overrides it.
+MUJOCO_GL ?= egl
+export MUJOCO_GL
+TRIALS ?= 50
+PYTEST_ARGS ?=
+
+# EGL/OSMesa runtime libraries MuJoCo's renderer loads by name (libEGL.so.1, libOSMesa.so.*).
+APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libosmesa6
+
+.PHONY: install system-deps test run clean
+
+install: $(PIP_STAMP)
+
+system-deps: $(APT_STAMP)
+
+# apt only where it can work (Debian-like machine, running as root); elsewhere say what is needed
+# and go on, since a developer's machine may already have the libraries.
+$(APT_STAMP):
+	@mkdir -p $(dir $@)
+	@if command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = "0" ]; then \
+		echo ">> apt-get install $(APT_PACKAGES)"; \
+		apt-get update && \
+		DEBIAN_FRONTEND=noninteractive apt-get install -y $(APT_PACKAGES); \
+	else \
+		echo ">> skipping apt (no apt-get or not root); make sure these are installed: $(APT_PACKAGES)"; \
+	fi
+	@touch $@
+
+# The venv stamp depends on pyproject.toml: changing dependencies reinstalls, nothing else does
+# (the apt stamp is order-only: redoing apt must not force a pip reinstall).
+$(PIP_STAMP): pyproject.toml | $(APT_STAMP)
+	$(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/pip install -e ".[dev]"
+	@touch $@
+
+test: install
+	MUJOCO_GL=$(MUJOCO_GL) $(VENV_PY) -m pytest -q $(PYTEST_ARGS)
+
+run: install
+	MUJOCO_GL=$(MUJOCO_GL) $(VENV_PY) -m planner_client run --trials $(TRIALS)
+
+clean:
+	rm -rf $(VENV) .make .pytest_cache *.egg-info
+	find . -path ./.git -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +

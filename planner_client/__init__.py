@@ -1,0 +1,1 @@
+"""The TAMP-style planner and the replan-until-success loop (no torch)."""

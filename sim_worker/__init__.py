@@ -1,0 +1,1 @@
+"""The MuJoCo world: scene, tasks, simulated perception, plan executor, dataset collection (no torch)."""
