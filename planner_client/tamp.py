@@ -72,6 +72,11 @@ def wrap_angle(a: float) -> float:
     return float((a + np.pi) % (2 * np.pi) - np.pi)
 
 
+def wrap_half_turn(a: float) -> float:
+    """A gripper yaw is the same grasp after half a turn: map to [-pi/2, pi/2)."""
+    return float((a + np.pi / 2) % np.pi - np.pi / 2)
+
+
 def nearest_equivalent(yaw: float, reference: float, period: float = QUARTER) -> float:
     """The angle ``yaw + k * period`` closest to ``reference``."""
     return float(yaw + period * np.round((reference - yaw) / period))
@@ -136,10 +141,8 @@ class TampPlanner:
             block_pos = np.asarray(blocks[name]["position"], dtype=float)
             block_yaw = float(blocks[name]["yaw"])
             # top-down grasp across a pair of faces: two finger axes; default = least wrist rotation
-            options = sorted((nearest_equivalent(block_yaw, 0.0) + k * QUARTER for k in (0, 1)),
-                             key=lambda a: abs(wrap_angle(a)))
+            options = sorted((wrap_half_turn(block_yaw + k * QUARTER) for k in (0, 1)), key=abs)
             grasp_yaw = options[0] if rng is None else options[int(rng.integers(len(options)))]
-            grasp_yaw = wrap_angle(grasp_yaw)
             grasp_pos = block_pos + np.array([0.0, 0.0, cfg.grasp_z_offset])
             above_block = np.array([grasp_pos[0], grasp_pos[1], cfg.clearance_z])
             # the block keeps its yaw relative to the fingers; any face may point anywhere (cube)

@@ -44,6 +44,20 @@ def _physics_unstable(world: World) -> bool:
     return any(d.warning[w].number > 0 for w in bad_warnings) or not np.isfinite(d.qpos).all()
 
 
+def control_schedule(timestep: float, control_hz: float) -> tuple[int, int]:
+    """Physics steps per control update and control updates per plan step, both exact integers.
+
+    A plan step must last exactly ``1/FPS`` simulated seconds; a timestep or controller rate that
+    does not divide it would silently run plans faster or slower than planned.
+    """
+    per_control = 1.0 / (control_hz * timestep)
+    per_step = control_hz / FPS
+    if abs(per_control - round(per_control)) > 1e-6 or abs(per_step - round(per_step)) > 1e-6 or per_control < 1:
+        raise ValueError(f"timestep {timestep} s and control rate {control_hz} Hz must divide the "
+                         f"{1 / FPS} s plan step into whole physics steps and control updates")
+    return int(round(per_control)), int(round(per_step))
+
+
 def execute_plan(world: World, task: str, initial_blocks: np.ndarray, plan: np.ndarray,
                  config: ExecutorConfig = ExecutorConfig()) -> ExecutionResult:
     """Reset ``world`` to ``initial_blocks`` and run ``plan`` (validated against the contract)."""
@@ -51,8 +65,7 @@ def execute_plan(world: World, task: str, initial_blocks: np.ndarray, plan: np.n
     model, data, panda = world.model, world.data, world.panda
     world.reset(initial_blocks)
     targets = plan[:, N_CATEGORIES:]  # (T, 9)
-    steps_per_control = max(1, round(1.0 / (config.control_hz * model.opt.timestep)))
-    controls_per_step = max(1, round(config.control_hz / FPS))
+    steps_per_control, controls_per_step = control_schedule(model.opt.timestep, config.control_hz)
     t_count = len(plan)
     frames = None
     if config.record_frames:

@@ -39,8 +39,8 @@ class SamplerConfig:
 
     stack_half_extent: float = 0.04  # blocks uniform in a square of this half size
     stack_min_gap: float = 0.015  # face to face between blocks on the table
-    box_min_gap: float = 0.01  # face to face between blocks packed in box A
-    box_wall_clearance: float = 0.062  # block centre to the box's inner walls at the start
+    box_min_gap: float = 0.006  # face to face between blocks packed in box A
+    box_wall_clearance: float = 0.066  # block centre to the box's inner walls at the start
     max_tries: int = 10_000
 
 

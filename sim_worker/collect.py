@@ -1,0 +1,136 @@
+"""Labelled dataset collection: sample seeds and block orders, plan, execute, record.
+
+Episode ``i`` of a collection uses scene seed ``seed_offset + i`` and a block order drawn from
+that seed, so an episode is fully determined by its index: a resumed collection simply skips the
+indices already on disk. Workers (separate processes) each own a World and a planner and write
+their finished episode as one atomic part file; the parent shows progress and, at the end, merges
+the parts into the robomimic-style HDF5 file in one atomic replace.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from firp.contract import DEFAULT_T, FPS
+from firp.episodes import EpisodeDataset, EpisodeRecord, completed_indices, consolidate, write_episode_part
+from planner_client.tamp import PlannerConfig, TampPlanner, block_orders
+from sim_worker.executor import ExecutorConfig, execute_plan
+from sim_worker.perception import PoseErrorConfig, observation
+from sim_worker.scene import BLOCK_NAMES, CAMERA, RenderConfig, SceneLayout
+from sim_worker.tasks import SamplerConfig, check_task, sample_initial_blocks
+from sim_worker.world import World
+
+ORDER_STREAM = 11  # separates the block-order draw from the scene and perception streams
+
+
+@dataclass(frozen=True)
+class CollectConfig:
+    task: str
+    episodes: int
+    out: Path
+    workers: int = 2
+    seed_offset: int = 0
+    horizon: int = DEFAULT_T
+    image_size: int = 84
+    pose_error: PoseErrorConfig = field(default_factory=PoseErrorConfig)
+    sampler: SamplerConfig = field(default_factory=SamplerConfig)
+    valid_fraction: float | None = None  # the splitter's job by default (mask/ left empty)
+
+    @property
+    def parts_dir(self) -> Path:
+        return self.out.with_name(self.out.name + ".parts")
+
+
+def episode_order(seed: int) -> tuple[str, ...]:
+    """The block order used for the episode with scene seed ``seed`` (uniform over all orders)."""
+    orders = block_orders(BLOCK_NAMES)
+    rng = np.random.default_rng(np.random.SeedSequence([seed, ORDER_STREAM]))
+    return orders[int(rng.integers(len(orders)))]
+
+
+def simulate_episode(world: World, planner: TampPlanner, task: str, seed: int, order: tuple[str, ...],
+                     pose_error: PoseErrorConfig, sampler: SamplerConfig = SamplerConfig(),
+                     record_frames: bool = True) -> EpisodeRecord:
+    """One labelled episode: initial state from ``seed``, plan from the noisy estimates, execution."""
+    true_blocks = sample_initial_blocks(task, seed, world.layout, sampler)
+    obs = observation(true_blocks, seed, world.layout, pose_error)
+    plan = planner.plan(task, obs, order)
+    result = execute_plan(world, task, true_blocks, plan.actions, ExecutorConfig(record_frames=record_frames))
+    frames = result.frames if result.frames is not None else np.zeros((len(plan.actions), 1, 1, 3), np.uint8)
+    return EpisodeRecord(
+        frames=frames,
+        actions=plan.actions.astype(np.float32),
+        states=result.states,
+        success=bool(result.success),
+        attrs={
+            "task": task, "seed": int(seed), "block_order": list(order), "reason": result.reason,
+            "pose_estimates": obs["blocks"], "true_initial_blocks": true_blocks.tolist(),
+            "final_blocks": result.final_block_poses.tolist(), "grasp_yaws": plan.grasp_yaws,
+            "place_targets": plan.place_targets, "sim_seconds": result.sim_seconds, "unstable": result.unstable,
+        },
+    )
+
+
+# -- worker processes --------------------------------------------------------------------------
+_worker: dict = {}
+
+
+def _init_worker(config: CollectConfig) -> None:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    _worker["config"] = config
+    _worker["world"] = World(SceneLayout(), RenderConfig(height=config.image_size, width=config.image_size))
+    _worker["planner"] = TampPlanner(PlannerConfig(horizon=config.horizon))
+
+
+def _collect_one(index: int) -> tuple[int, bool, str]:
+    config: CollectConfig = _worker["config"]
+    seed = config.seed_offset + index
+    record = simulate_episode(_worker["world"], _worker["planner"], config.task, seed, episode_order(seed),
+                              config.pose_error, config.sampler)
+    write_episode_part(config.parts_dir, index, record)
+    return index, record.success, record.attrs["reason"]
+
+
+def dataset_attrs(config: CollectConfig, layout: SceneLayout = SceneLayout()) -> dict:
+    return {
+        "env": "firp-mujoco-panda", "task": config.task, "fps": FPS, "T": config.horizon,
+        "image_height": config.image_size, "image_width": config.image_size, "camera": CAMERA,
+        "block_names": list(BLOCK_NAMES), "seed_offset": config.seed_offset,
+        "pose_error": asdict(config.pose_error), "sampler": asdict(config.sampler),
+        "timestep": layout.timestep,
+    }
+
+
+def collect(config: CollectConfig, progress: bool = True) -> dict:
+    """Collect ``config.episodes`` episodes into ``config.out`` (resuming), return the class balance."""
+    check_task(config.task)
+    config.out.parent.mkdir(parents=True, exist_ok=True)
+    done = completed_indices(config.out, config.parts_dir)
+    pending = [i for i in range(config.episodes) if i not in done]
+    started = time.perf_counter()
+    successes = 0
+    if pending:
+        ctx = mp.get_context("spawn")  # no forked GL contexts
+        bar = tqdm(total=config.episodes, initial=config.episodes - len(pending), desc=f"collect {config.task}",
+                   unit="ep", disable=not progress)
+        workers = max(1, min(config.workers, len(pending)))
+        with ctx.Pool(workers, initializer=_init_worker, initargs=(config,)) as pool:
+            for n, (_, success, _) in enumerate(pool.imap_unordered(_collect_one, pending), start=1):
+                successes += success
+                bar.update(1)
+                bar.set_postfix(success=f"{successes / n:.2f}")
+        bar.close()
+    if pending or not config.out.exists():
+        consolidate(config.parts_dir, config.out, dataset_attrs(config), valid_fraction=config.valid_fraction)
+    with EpisodeDataset(config.out) as ds:
+        balance = ds.class_balance()
+    balance["new_episodes"] = len(pending)
+    balance["seconds"] = round(time.perf_counter() - started, 1)
+    return balance

@@ -1,0 +1,87 @@
+"""The TAMP-style planner: contract-valid plans, natural category order, IK reaching its targets."""
+
+import itertools
+
+import numpy as np
+import pytest
+
+from firp.contract import CATEGORIES, PICK_PLACE_SEQUENCE, split_plan, validate_plan
+from planner_client.ik import IKFailure, PandaIK
+from planner_client.tamp import PlannerConfig, TampPlanner, block_orders
+from sim_worker.perception import PoseErrorConfig, observation
+from sim_worker.scene import SceneLayout
+from sim_worker.tasks import sample_initial_blocks
+
+LAYOUT = SceneLayout()
+
+
+@pytest.fixture(scope="module")
+def planner():
+    return TampPlanner()
+
+
+def _runs(categories: np.ndarray) -> list[str]:
+    return [CATEGORIES[k] for k, _ in itertools.groupby(categories.tolist())]
+
+
+@pytest.mark.parametrize("task,moved", [("stacking", 2), ("replacement", 3)])
+def test_plan_is_valid_and_follows_the_natural_category_order(planner, task, moved):
+    blocks = sample_initial_blocks(task, 3)
+    plan = planner.plan(task, observation(blocks, 3, LAYOUT))
+    actions = validate_plan(plan.actions)
+    assert actions.shape == (120, 16)
+    categories, targets = split_plan(actions)
+    assert _runs(categories) == list(PICK_PLACE_SEQUENCE) * moved
+    assert len(plan.grasp_yaws) == moved
+
+
+def test_grasp_step_puts_the_tcp_on_the_estimated_block(planner):
+    blocks = sample_initial_blocks("stacking", 4)
+    obs = observation(blocks, 4, LAYOUT)
+    plan = planner.plan("stacking", obs, ("red", "green", "blue"))
+    categories, targets = split_plan(plan.actions)
+    first_grasp = int(np.flatnonzero(categories == CATEGORIES.index("grasp"))[0])
+    pos, _ = planner.ik.forward(targets[first_grasp, :7])
+    np.testing.assert_allclose(pos, obs["blocks"]["green"]["position"], atol=1e-3)
+    # the fingers close during the grasp and open at release
+    assert targets[first_grasp - 1, 7] == pytest.approx(0.04)
+    release = np.flatnonzero(categories == CATEGORIES.index("release"))
+    release = release[: int(np.argmax(np.diff(release) > 1)) + 1]  # the first release run
+    assert np.all(np.diff(targets[release, 7]) > 0)  # opening during the first release
+    assert targets[release[-1] + 1, 7] == pytest.approx(0.04)  # open when moving away
+
+
+def test_stacking_places_on_the_estimated_base(planner):
+    blocks = sample_initial_blocks("stacking", 2)
+    obs = observation(blocks, 2, LAYOUT)
+    plan = planner.plan("stacking", obs, ("blue", "red", "green"))
+    base = np.asarray(obs["blocks"]["blue"]["position"])
+    for level, target in enumerate(plan.place_targets, start=1):
+        np.testing.assert_allclose(target[:2], base[:2], atol=1e-9)
+        assert target[2] == pytest.approx(base[2] + 0.04 * level + PlannerConfig().release_gap)
+
+
+def test_orders_start_with_the_default_and_cover_all_permutations():
+    orders = block_orders()
+    assert orders[0] == ("red", "green", "blue") and len(set(orders)) == 6
+
+
+def test_bad_order_is_rejected(planner):
+    obs = observation(sample_initial_blocks("stacking", 0), 0, LAYOUT)
+    with pytest.raises(ValueError, match="order: must be a permutation"):
+        planner.plan("stacking", obs, ("red", "red", "blue"))
+
+
+def test_plan_is_deterministic_and_the_planner_seed_varies_grasp_yaws(planner):
+    obs = observation(sample_initial_blocks("replacement", 9), 9, LAYOUT, PoseErrorConfig())
+    a = planner.plan("replacement", obs)
+    b = planner.plan("replacement", obs)
+    np.testing.assert_array_equal(a.actions, b.actions)
+    yaws = {tuple(np.round(planner.plan("replacement", obs, planner_seed=s).grasp_yaws, 6)) for s in range(8)}
+    assert len(yaws) > 1
+
+
+def test_unreachable_pose_raises_a_clear_error():
+    ik = PandaIK()
+    with pytest.raises(IKFailure, match="no IK solution"):
+        ik.solve(np.array([1.5, 0.0, 0.02]), 0.0, np.zeros(7) + np.array([0, 0, 0, -1.5, 0, 1.5, 0]))
