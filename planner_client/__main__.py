@@ -12,27 +12,17 @@ import os
 import sys
 from pathlib import Path
 
-
-def _positive_int(name: str, high: int):
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be an integer, got {text!r}") from None
-        if not 1 <= value <= high:
-            raise argparse.ArgumentTypeError(f"{name} must be in [1, {high}], got {value}")
-        return value
-    return parse
+from firp.cli import int_in_range
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m planner_client", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="run planning trials end to end")
-    run.add_argument("--trials", type=_positive_int("--trials", 100_000), default=50)
+    run.add_argument("--trials", type=int_in_range("--trials", 1, 100_000), default=50)
     run.add_argument("--task", choices=("stacking", "replacement"), default="stacking")
     run.add_argument("--seed", type=int, default=100_000, help="trial i uses scene seed SEED + i")
-    run.add_argument("--max-iterations", type=_positive_int("--max-iterations", 6), default=6,
+    run.add_argument("--max-iterations", type=int_in_range("--max-iterations", 1, 6), default=6,
                      help="block orders tried per trial at most (the replanning budget)")
     run.add_argument("--no-oracle", action="store_true", help="skip the oracle line (faster)")
     run.add_argument("--out", type=Path, default=None, help="JSONL of trial records (default runs/<task>.jsonl)")

@@ -8,31 +8,8 @@ import os
 import sys
 from pathlib import Path
 
+from firp.cli import int_in_range, non_negative_float, open_unit_fraction
 from firp.contract import DEFAULT_T, T_MAX, T_MIN
-
-
-def _int_in(low: int, high: int, name: str):
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be an integer, got {text!r}") from None
-        if not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"{name} must be in [{low}, {high}], got {value}")
-        return value
-    return parse
-
-
-def _non_negative_float(name: str):
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be a number, got {text!r}") from None
-        if not value >= 0.0:
-            raise argparse.ArgumentTypeError(f"{name} must be >= 0, got {value}")
-        return value
-    return parse
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,19 +19,19 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     c = sub.add_parser("collect", help="simulate labelled episodes into a robomimic-style HDF5 file (resumable)")
     c.add_argument("--task", required=True, choices=TASK_NAMES)
-    c.add_argument("--episodes", required=True, type=_int_in(1, 1_000_000, "--episodes"))
+    c.add_argument("--episodes", required=True, type=int_in_range("--episodes", 1, 1_000_000))
     c.add_argument("--out", required=True, type=Path, help="HDF5 file to write (parts kept beside it until done)")
-    c.add_argument("--workers", type=_int_in(1, 256, "--workers"), default=max(1, os.cpu_count() or 1))
-    c.add_argument("--seed-offset", type=_int_in(0, 2**31 - 1, "--seed-offset"), default=0,
+    c.add_argument("--workers", type=int_in_range("--workers", 1, 256), default=max(1, os.cpu_count() or 1))
+    c.add_argument("--seed-offset", type=int_in_range("--seed-offset", 0, 2**31 - 1), default=0,
                    help="episode i uses scene seed seed_offset + i")
-    c.add_argument("--horizon", "-T", type=_int_in(T_MIN, T_MAX, "--horizon"), default=DEFAULT_T,
+    c.add_argument("--horizon", "-T", type=int_in_range("--horizon", T_MIN, T_MAX), default=DEFAULT_T,
                    help="plan length in steps at 4 FPS")
-    c.add_argument("--image-size", type=_int_in(16, 512, "--image-size"), default=84)
-    c.add_argument("--pose-error-mm", type=_non_negative_float("--pose-error-mm"), default=3.0,
+    c.add_argument("--image-size", type=int_in_range("--image-size", 16, 512), default=84)
+    c.add_argument("--pose-error-mm", type=non_negative_float("--pose-error-mm"), default=3.0,
                    help="std of the planner's block position estimate error in the plane (0 = exact)")
-    c.add_argument("--pose-error-deg", type=_non_negative_float("--pose-error-deg"), default=3.0,
+    c.add_argument("--pose-error-deg", type=non_negative_float("--pose-error-deg"), default=3.0,
                    help="std of the planner's block yaw estimate error (0 = exact)")
-    c.add_argument("--valid-fraction", type=float, default=None,
+    c.add_argument("--valid-fraction", type=open_unit_fraction("--valid-fraction"), default=None,
                    help="also write a stratified mask/train|valid split with this validation share")
     c.add_argument("--no-progress", action="store_true")
     return parser
