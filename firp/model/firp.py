@@ -1,0 +1,122 @@
+"""FIRP: feature projection + RSSM + success head.
+
+Training reads cached backbone features of *all* executed frames (``forward_train``); inference
+reads the features of the initial image only (``score``). Index convention: see
+:mod:`firp.model.rssm` (0-based; index k = frames[k] = paper's t = k + 1).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from firp.model.config import FIRPConfig
+from firp.model.encoder import FeatureProjection, ImageEncoder
+from firp.model.head import SuccessHead
+from firp.model.rssm import RSSM
+
+__all__ = ["FIRP", "Score", "first_step"]
+
+
+class Score(NamedTuple):
+    """What a model returns at inference."""
+
+    logits: Tensor  # (B,) success logit; sigmoid -> probability
+    weights: Tensor | None  # (B, T) attention over time (sums to 1 over valid steps); None: no attention
+    features: Tensor | None  # (B, T, E) the sequence the head read: [e_1, e^_2, ..., e^_T]
+
+
+def first_step(features: Tensor) -> Tensor:
+    """``(B, Db)`` stays, ``(B, T, Db)`` -> ``(B, Db)`` of frame 0: inference may only see I_1."""
+    if features.ndim == 3:
+        return features[:, 0]
+    if features.ndim != 2:
+        raise ValueError(f"features must be (B, D) or (B, T, D), got shape {tuple(features.shape)}")
+    return features
+
+
+class FIRP(nn.Module):
+    """The paper's model. ``cfg.encoder`` sizes the projection; the backbone lives outside (cache)."""
+
+    #: Inference needs only the initial image (the Oracle baseline sets this True).
+    requires_future_frames = False
+
+    def __init__(self, cfg: FIRPConfig = FIRPConfig()):
+        super().__init__()
+        self.cfg = cfg
+        E = cfg.encoder.feature_dim
+        self.projection = FeatureProjection(cfg.encoder)
+        self.rssm = RSSM(cfg.rssm, E, cfg.action_dim)
+        self.head = SuccessHead(cfg.head, E)
+
+    def image_encoder(self) -> ImageEncoder:
+        """An :class:`ImageEncoder` (builds/loads the backbone) sharing this model's projection."""
+        return ImageEncoder(self.cfg.encoder, projection=self.projection)
+
+    def forward_train(
+        self,
+        features: Tensor,
+        actions: Tensor,
+        mask: Tensor | None = None,
+        overshooting_distances: Sequence[int] = (),
+        sample: bool = True,
+        overshooting_stride: int = 1,
+    ) -> dict[str, object]:
+        """Everything the losses need, from cached features of the executed frames.
+
+        ``features`` (B, T, Db) backbone features of frames 0..T-1, ``actions`` (B, T, A),
+        ``mask`` (B, T) bool, valid steps a prefix of each row. Returns:
+
+        * ``e`` (B, T, E) projected real features (targets; TCR acts on them);
+        * the :meth:`RSSM.observe` tensors, (B, T, .): ``h``, ``post_*``, ``prior_*`` (tau = 1),
+          ``feat_prior``, ``feat_post``;
+        * ``open_loop``: the :meth:`RSSM.imagine` dict (B, T-1, .) from the filtered latent at
+          index 0 under ``actions[:, 1:]`` -- the rollout inference runs (with samples here);
+        * ``overshoot``: ``{tau: dict}`` from :meth:`RSSM.overshoot` for the requested distances
+          (every ``overshooting_stride``-th start; ``targets`` holds the target indices); the open
+          loop above is always there in addition;
+        * ``logits``, ``weights``: the head on the real features (the paper's L_ce);
+        * ``logits_open_loop``, ``weights_open_loop``, ``features_open_loop`` (B, T, E): the head on
+          [e_1, e^_2..e^_T] from the open loop, i.e. what ``score`` computes (up to sampling).
+        """
+        e = self.projection(features)  # (B, T, E)
+        obs = self.rssm.observe(e, actions, sample=sample)
+        open_loop = self.rssm.imagine(obs["h"][:, 0], obs["post_sample"][:, 0], actions[:, 1:], sample=sample)
+        seq_ol = torch.cat([e[:, :1], open_loop["feat"]], dim=1) if actions.shape[1] > 1 else e[:, :1]
+        logits, weights = self.head(e, mask)
+        logits_ol, weights_ol = self.head(seq_ol, mask)
+        overshoot = {
+            int(tau): self.rssm.overshoot(
+                obs["h"], obs["post_sample"], actions, int(tau), sample=sample, stride=overshooting_stride
+            )
+            for tau in overshooting_distances
+        }
+        return {
+            "e": e,
+            "mask": mask,
+            **obs,
+            "open_loop": open_loop,
+            "overshoot": overshoot,
+            "logits": logits,
+            "weights": weights,
+            "logits_open_loop": logits_ol,
+            "weights_open_loop": weights_ol,
+            "features_open_loop": seq_ol,
+        }
+
+    def score(
+        self, first_features: Tensor, actions: Tensor, mask: Tensor | None = None, sample: bool = False
+    ) -> Score:
+        """Inference from the initial image only.
+
+        ``first_features`` (B, Db) backbone features of I_1 (a (B, T, Db) tensor is accepted and
+        only its frame 0 is read), ``actions`` (B, T, A), ``mask`` (B, T). ``sample=False`` rolls
+        the means, so one plan always gets one score.
+        """
+        e1 = self.projection(first_step(first_features))  # (B, E)
+        roll = self.rssm.rollout_from_first(e1, actions, sample=sample)
+        logits, weights = self.head(roll["features"], mask)
+        return Score(logits, weights, roll["features"])

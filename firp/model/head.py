@@ -1,0 +1,55 @@
+"""Success-or-failure head: attention pooling of a feature sequence (paper eq. 5) + a linear score.
+
+    q_t    = MLP2(e^_t)                                                      (B, T, Q)
+    w_t    = 1/M sum_i  exp(cos(phi_i, q_t) / L) / sum_j exp(cos(phi_i, q_j) / L)   (B, T)
+    pooled = sum_t w_t q_t                                                   (B, Q)
+    logit  = Linear(pooled)                                                  (B,)
+
+The weights sum to 1 over t for every sequence; the service shows them to point at the step where
+a failure becomes evident, which is why the head returns them.
+
+About the temperature ``L``: the paper writes ``e^{cos / L}`` with ``L = 20``. As ``cos`` lies in
+[-1, 1], ``cos / 20`` lies in [-0.05, 0.05], so no weight can exceed another by more than a factor
+``e^{0.1} = 1.105``: at ``L = 20`` the pooling is practically the plain mean over time (checked in
+``tests/firp/test_head.py``: for T = 50 every weight is within 10% of 1/T). A cosine classifier's
+"temperature 20" usually is a *scale*, ``cos * 20``, which is ``L = 0.05`` here and gives peaked
+weights. ``L`` is therefore :attr:`HeadConfig.temperature`: the paper's value is the default, a
+product may prefer ``L ~ 0.05 - 0.1``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from firp.model.config import HeadConfig
+from firp.model.ops import mlp2, safe_unit
+
+__all__ = ["SuccessHead"]
+
+
+class SuccessHead(nn.Module):
+    """Attention-pooled success classifier over a sequence of features ``(B, T, E)``."""
+
+    def __init__(self, cfg: HeadConfig, feature_dim: int):
+        super().__init__()
+        self.cfg = cfg
+        self.q = mlp2(feature_dim, cfg.hidden, cfg.q_dim)
+        self.prototypes = nn.Parameter(torch.randn(cfg.n_prototypes, cfg.q_dim))  # phi_i (M, Q)
+        self.out = nn.Linear(cfg.q_dim, 1)
+
+    def attention(self, q: Tensor, mask: Tensor | None = None) -> Tensor:
+        """Eq. (5): ``q`` (B, T, Q) -> ``w`` (B, T), rows sum to 1 over the valid steps."""
+        cos = torch.einsum("mq,btq->bmt", safe_unit(self.prototypes), safe_unit(q))  # (B, M, T)
+        logits = cos / self.cfg.temperature
+        if mask is not None:
+            logits = logits.masked_fill(~mask.bool().unsqueeze(1), float("-inf"))
+        return torch.softmax(logits, dim=-1).mean(dim=1)  # softmax over t, mean over prototypes
+
+    def forward(self, features: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """``features`` (B, T, E), ``mask`` (B, T) bool (True = real step, at least one per row)
+        -> ``logits`` (B,) and ``weights`` (B, T) (0 on masked steps)."""
+        q = self.q(features)  # (B, T, Q)
+        w = self.attention(q, mask)  # (B, T)
+        pooled = torch.einsum("bt,btq->bq", w, q)  # (B, Q)
+        return self.out(pooled).squeeze(-1), w
