@@ -1,0 +1,80 @@
+"""Backbone features of every frame of a dataset, computed once and cached on disk.
+
+The image backbone is frozen, so its output for a given frame never changes: running it once per
+dataset (instead of once per epoch) is what makes training on a 2-core CPU affordable. The cache
+is keyed by the dataset's content hash and the backbone settings, so a changed dataset or backbone
+can never be served stale features. Extraction writes into a memory-mapped ``.npy`` as it goes
+and records its progress, so an interrupted run resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from firp.episodes import EpisodeDataset
+from firp.model.config import EncoderConfig
+from firp.model.encoder import ImageEncoder
+
+DEFAULT_CACHE_DIR = Path("data/cache")
+
+
+def cache_key(dataset_hash: str, cfg: EncoderConfig) -> str:
+    """Name of the cache entry: what determines the backbone's output, and nothing else."""
+    settings = {"backbone": cfg.backbone, "image_size": cfg.image_size, "normalization": cfg.resolved_normalization,
+                "weights": cfg.weights_path or "shipped", "channels": list(cfg.small_cnn_channels)}
+    digest = hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:12]
+    return f"{dataset_hash[:16]}-{cfg.backbone}-{cfg.image_size}px-{digest}"
+
+
+def cached_features(dataset_path: str | os.PathLike, cfg: EncoderConfig, cache_dir: str | os.PathLike = DEFAULT_CACHE_DIR,
+                    batch_frames: int = 240, progress: bool = True, dataset_hash: str | None = None) -> np.ndarray:
+    """Features ``(N, T, Db)`` float16 of every frame, in the dataset's demo order (memory-mapped).
+
+    Computes what is missing (resuming a partial run) and returns the finished cache.
+    """
+    if not cfg.freeze_backbone:
+        raise ValueError("encoder.freeze_backbone: only a frozen backbone's features can be cached")
+    cache_dir = Path(cache_dir)
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    with EpisodeDataset(dataset_path) as ds:
+        dataset_hash = dataset_hash or ds.content_hash()
+        key = cache_key(dataset_hash, cfg)
+        final = cache_dir / f"{key}.npy"
+        if final.exists():
+            return np.load(final, mmap_mode="r", allow_pickle=False)
+        names = ds.demo_names
+        t_len = ds.frames(names[0]).shape[0]
+        encoder = ImageEncoder(cfg).eval()
+        partial = cache_dir / f"{key}.partial.npy"
+        progress_file = cache_dir / f"{key}.progress.json"
+        done = 0
+        if partial.exists() and progress_file.exists():
+            done = int(json.loads(progress_file.read_text())["done"])
+            out = np.load(partial, mmap_mode="r+", allow_pickle=False)
+        else:
+            out = np.lib.format.open_memmap(partial, mode="w+", dtype=np.float16,
+                                            shape=(len(names), t_len, encoder.backbone_dim))
+        bar = tqdm(total=len(names), initial=done, desc=f"features {cfg.backbone}@{cfg.image_size}", unit="ep",
+                   disable=not progress)
+        with torch.inference_mode():
+            for i in range(done, len(names)):
+                frames = ds.frames(names[i])  # (T, H, W, 3) uint8
+                feats = encoder.backbone_features(torch.from_numpy(frames), chunk_size=batch_frames)
+                out[i] = feats.float().numpy().astype(np.float16)
+                if (i + 1) % 16 == 0 or i + 1 == len(names):
+                    out.flush()
+                    progress_file.write_text(json.dumps({"done": i + 1, "config": asdict(cfg)}))
+                bar.update(1)
+        bar.close()
+        del out
+        os.replace(partial, final)
+        progress_file.unlink(missing_ok=True)
+    return np.load(final, mmap_mode="r", allow_pickle=False)

@@ -1,0 +1,201 @@
+"""Training one model (FIRP or a baseline) on cached features: the loop every tool shares.
+
+Follows the paper's learning algorithm: Adam, gradient clipping, the future-prediction terms
+switched on from epoch ``e_start_f``, the image-feature projection (e_t) frozen after epoch
+``e_stop_e``, early stopping on validation balanced accuracy of the *inference path* (scores from
+the initial image only). Seeded: batch order and sampling noise are drawn from generators seeded
+by (seed, epoch), so a resumed run continues exactly as an uninterrupted one. Checkpoints are
+safetensors (weights) + a JSON state; the optimizer state is loaded with ``weights_only=True``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+from tqdm import tqdm
+
+from firp.data import SequenceData
+from firp.losses import classification_loss, firp_loss
+from firp.metrics import balanced_accuracy
+from firp.model.baselines import build_model
+from firp.model.config import FIRPConfig
+from firp.model.rssm import sample_overshooting_distances
+
+FUTURE_TERMS = ("ce_open_loop", "kl", "re", "kl_overshoot", "re_overshoot")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run. The first seven fields are the paper's tuned parameters."""
+
+    lr: float = 1e-3
+    grad_clip: float = 10.0
+    overshooting: float = 0.1  # lambda
+    alpha: float = 0.01  # TTC weight
+    beta: float = 0.01  # ATC weight
+    e_start_f: int = 0  # epoch at which the future-prediction losses start
+    e_stop_e: int = 20  # epoch after which the projection producing e_t is frozen
+    kind: str = "firp"
+    epochs: int = 40
+    batch_size: int = 32
+    patience: int = 10  # epochs without a better validation balanced accuracy
+    seed: int = 0
+    overshooting_n: int = 2  # sampled distances per batch (besides the open loop)
+    overshooting_max_tau: int = 60
+    overshooting_stride: int = 4
+    threads: int = 2
+    model: FIRPConfig = field(default_factory=FIRPConfig)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["model"] = self.model.to_dict()
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        d = dict(d)
+        d["model"] = FIRPConfig.from_dict(d["model"])
+        return cls(**d)
+
+
+@dataclass
+class TrainResult:
+    model: torch.nn.Module
+    best_epoch: int
+    best_val_balanced_accuracy: float
+    history: list[dict]
+    seconds: float
+
+
+def _with_loss_weights(cfg: TrainConfig) -> FIRPConfig:
+    from dataclasses import replace
+
+    return replace(cfg.model, loss=replace(cfg.model.loss, overshooting=cfg.overshooting, alpha=cfg.alpha,
+                                           beta=cfg.beta))
+
+
+@torch.inference_mode()
+def predict(model: torch.nn.Module, data: SequenceData, batch_size: int = 128) -> np.ndarray:
+    """Success probabilities (N,) through the inference path (the Oracle reads all frames)."""
+    model.eval()
+    probs = []
+    for start in range(0, len(data), batch_size):
+        sl = slice(start, start + batch_size)
+        feats = data.features[sl] if getattr(model, "requires_future_frames", False) else data.features[sl, 0]
+        probs.append(torch.sigmoid(model.score(feats, data.actions[sl]).logits))
+    return torch.cat(probs).numpy()
+
+
+def _loss(model: torch.nn.Module, cfg: TrainConfig, feats: torch.Tensor, actions: torch.Tensor, labels: torch.Tensor,
+          epoch: int, gen: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]:
+    if cfg.kind != "firp":
+        out = model.forward_train(feats, actions)
+        loss = classification_loss(out["logits"], labels)
+        return loss, {"ce": float(loss.detach())}
+    future = epoch >= cfg.e_start_f
+    taus = sample_overshooting_distances(actions.shape[1], cfg.overshooting_n, cfg.overshooting_max_tau, gen) \
+        if future and cfg.overshooting > 0 else []
+    out = model.forward_train(feats, actions, overshooting_distances=taus, overshooting_stride=cfg.overshooting_stride)
+    terms = firp_loss(out, actions, labels, model.cfg.loss)
+    total = terms["total"]
+    if not future:  # before E_start^f: classification from real features + TCR only
+        total = total - sum(model.cfg.loss.ce_open_loop * terms[k] if k == "ce_open_loop" else
+                            (model.cfg.loss.overshooting * terms[k] if "overshoot" in k else terms[k])
+                            for k in FUTURE_TERMS)
+    return total, {k: float(v.detach()) for k, v in terms.items()}
+
+
+def _set_projection_trainable(model: torch.nn.Module, trainable: bool) -> None:
+    projection = getattr(model, "projection", None)
+    if projection is not None:
+        for p in projection.parameters():
+            p.requires_grad_(trainable)
+
+
+def train_model(cfg: TrainConfig, train: SequenceData, valid: SequenceData, checkpoint_dir: str | os.PathLike | None = None,
+                progress: bool = True) -> TrainResult:
+    """Train ``cfg.kind`` on ``train``; select the epoch by validation balanced accuracy; resumable."""
+    torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    model_cfg = _with_loss_weights(cfg)
+    model = build_model(cfg.kind, model_cfg)
+    optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    ckpt = Path(checkpoint_dir) if checkpoint_dir else None
+    history: list[dict] = []
+    best = (-math.inf, -1)
+    best_state: dict[str, torch.Tensor] | None = None
+    start_epoch = 0
+    started = time.perf_counter()
+    if ckpt and (ckpt / "state.json").exists():
+        state = json.loads((ckpt / "state.json").read_text())
+        if state["config"] != json.loads(json.dumps(cfg.to_dict())):
+            raise ValueError(f"checkpoint {ckpt} was written by a different training config; use another directory")
+        model.load_state_dict(load_file(ckpt / "last.safetensors"))
+        optim.load_state_dict(torch.load(ckpt / "optim.pt", weights_only=True))
+        best_state = load_file(ckpt / "best.safetensors")
+        history, best, start_epoch = state["history"], tuple(state["best"]), state["epoch"] + 1
+        if state.get("finished"):
+            model.load_state_dict(best_state)
+            return TrainResult(model.eval(), best[1], best[0], history, state["seconds"])
+    n = len(train)
+    bar = tqdm(range(start_epoch, cfg.epochs), desc=f"train {cfg.kind}", unit="epoch", disable=not progress)
+    for epoch in bar:
+        model.train()
+        _set_projection_trainable(model, epoch <= cfg.e_stop_e)
+        gen = torch.Generator().manual_seed(cfg.seed * 100_003 + epoch)
+        torch.manual_seed(cfg.seed * 100_003 + epoch)  # reparametrisation noise
+        order = torch.randperm(n, generator=gen)
+        sums: dict[str, float] = {}
+        batches = 0
+        for start in range(0, n, cfg.batch_size):
+            idx = order[start:start + cfg.batch_size]
+            loss, terms = _loss(model, cfg, train.features[idx], train.actions[idx], train.labels[idx], epoch, gen)
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"non-finite loss at epoch {epoch}: {terms}")
+            optim.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+            optim.step()
+            for k, v in terms.items():
+                sums[k] = sums.get(k, 0.0) + v
+            batches += 1
+        probs = predict(model, valid)
+        val_ba = balanced_accuracy(valid.labels.numpy() > 0.5, probs >= 0.5)
+        record = {"epoch": epoch, "val_balanced_accuracy": val_ba, **{k: v / batches for k, v in sums.items()}}
+        history.append(record)
+        if val_ba > best[0]:
+            best = (val_ba, epoch)
+            best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+        bar.set_postfix(loss=f"{record.get('total', record.get('ce')):.3f}", val_ba=f"{val_ba:.3f}", best=f"{best[0]:.3f}")
+        stop = epoch - best[1] >= cfg.patience
+        if ckpt:
+            _save_checkpoint(ckpt, model, optim, best_state, cfg, history, best, epoch, time.perf_counter() - started, stop
+                             or epoch == cfg.epochs - 1)
+        if stop:
+            break
+    bar.close()
+    assert best_state is not None
+    model.load_state_dict(best_state)
+    return TrainResult(model.eval(), best[1], best[0], history, time.perf_counter() - started)
+
+
+def _save_checkpoint(ckpt: Path, model, optim, best_state, cfg: TrainConfig, history, best, epoch: int, seconds: float,
+                     finished: bool) -> None:
+    """Write weights and state to temp names, then replace, so a crash leaves the previous checkpoint."""
+    ckpt.mkdir(parents=True, exist_ok=True)
+    save_file({k: v.contiguous() for k, v in model.state_dict().items()}, ckpt / "last.safetensors.tmp")
+    save_file({k: v.contiguous() for k, v in best_state.items()}, ckpt / "best.safetensors.tmp")
+    torch.save(optim.state_dict(), ckpt / "optim.pt.tmp")
+    (ckpt / "state.json.tmp").write_text(json.dumps({
+        "config": cfg.to_dict(), "history": history, "best": list(best), "epoch": epoch, "seconds": seconds,
+        "finished": finished}))
+    for name in ("last.safetensors", "best.safetensors", "optim.pt", "state.json"):
+        os.replace(ckpt / f"{name}.tmp", ckpt / name)

@@ -1,0 +1,89 @@
+"""The shared training loop on a synthetic micro-dataset whose label is learnable from the plan."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+import firp.train
+
+from firp.data import SequenceData, stratified_split
+from firp.train import TrainConfig, predict, train_model
+from tests.firp.model.helpers import DB, TINY, random_plan
+
+T = 12
+
+
+def micro_data(n: int = 48, seed: int = 0) -> SequenceData:
+    g = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    actions = random_plan(n, T)
+    labels = (actions[:, :, 7:].mean(dim=(1, 2)) > 0).float()  # success decided by the plan
+    features = torch.randn(n, T, DB, generator=g) + labels[:, None, None]
+    return SequenceData(features, actions, labels, "synthetic", [f"demo_{i}" for i in range(n)])
+
+
+def config(**kw) -> TrainConfig:
+    base = TrainConfig(epochs=4, batch_size=16, threads=1, overshooting_n=1, overshooting_max_tau=5,
+                       overshooting_stride=2, patience=10, e_stop_e=2, model=replace(TINY, baseline=replace(
+                           TINY.baseline, max_T=T)))
+    return replace(base, **kw)
+
+
+@pytest.fixture(scope="module")
+def splits():
+    data = micro_data()
+    rest, valid = stratified_split(data.labels.numpy(), 0.25, seed=0)
+    return data.subset(rest), data.subset(valid)
+
+
+@pytest.mark.parametrize("kind", ["firp", "a_mlp", "a_mlp_image", "gru", "oracle"])
+def test_every_kind_trains_and_predicts(kind, splits):
+    train, valid = splits
+    result = train_model(config(kind=kind), train, valid, progress=False)
+    assert len(result.history) == 4 and 0.0 <= result.best_val_balanced_accuracy <= 1.0
+    probs = predict(result.model, valid)
+    assert probs.shape == (len(valid),) and np.all((probs >= 0) & (probs <= 1))
+
+
+def test_same_seed_same_model_and_resume_equals_uninterrupted(tmp_path, splits, monkeypatch):
+    train, valid = splits
+    cfg = config(epochs=4, seed=3)
+    full = train_model(cfg, train, valid, progress=False)
+    again = train_model(cfg, train, valid, progress=False)
+    np.testing.assert_allclose(predict(full.model, valid), predict(again.model, valid), atol=1e-6)
+    # killed right after the checkpoint of epoch 1, then resumed from it
+    ckpt = tmp_path / "run"
+    real_save = firp.train._save_checkpoint
+
+    def save_then_die(*args, **kwargs):
+        real_save(*args, **kwargs)
+        if args[7] == 1:  # epoch
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(firp.train, "_save_checkpoint", save_then_die)
+    with pytest.raises(KeyboardInterrupt):
+        train_model(cfg, train, valid, checkpoint_dir=ckpt, progress=False)
+    monkeypatch.setattr(firp.train, "_save_checkpoint", real_save)
+    assert json.loads((ckpt / "state.json").read_text())["epoch"] == 1
+    resumed = train_model(cfg, train, valid, checkpoint_dir=ckpt, progress=False)
+    assert [h["epoch"] for h in resumed.history] == [0, 1, 2, 3]
+    np.testing.assert_allclose(predict(resumed.model, valid), predict(full.model, valid), atol=1e-5)
+
+
+def test_checkpoint_of_another_config_is_refused(tmp_path, splits):
+    train, valid = splits
+    train_model(config(epochs=1), train, valid, checkpoint_dir=tmp_path, progress=False)
+    with pytest.raises(ValueError, match="different training config"):
+        train_model(config(epochs=1, lr=0.5), train, valid, checkpoint_dir=tmp_path, progress=False)
+
+
+def test_a_learnable_label_is_learned(splits):
+    train, valid = splits
+    cfg = config(kind="a_mlp", epochs=30, lr=1e-2, patience=30)
+    # mean pooling makes this label (the plan's mean joint target) linear in the input
+    cfg = replace(cfg, model=replace(cfg.model, baseline=replace(cfg.model.baseline, plan_pooling="mean")))
+    result = train_model(cfg, train, valid, progress=False)
+    assert result.best_val_balanced_accuracy >= 0.75
