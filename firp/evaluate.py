@@ -1,0 +1,138 @@
+"""The evaluation protocol: every method on the same splits, balanced accuracy on held-out tests.
+
+Per repeat r: a stratified 80/20 train/test split (seed r), then 20% of train held out for
+validation (early stopping and threshold choice). Every method trains on the same episodes and is
+tested on the same episodes; results are written per (repeat, method) as they finish, so an
+interrupted evaluation resumes without retraining what is done. DVD (the paper's video baseline)
+needs its authors' published weights and cannot run here: it is reported as not run.
+
+    python -m firp.evaluate --data data/stacking.h5 --repeats 5
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from firp.cli import int_in_range
+from firp.data import SequenceData, load_sequences, stratified_split
+from firp.features import DEFAULT_CACHE_DIR
+from firp.metrics import balanced_accuracy, choose_threshold
+from firp.model.config import EncoderConfig, FIRPConfig
+from firp.train import TrainConfig, predict, train_model
+
+#: method name -> how it differs from the default training config
+METHODS: dict[str, dict] = {
+    "a_mlp": {"kind": "a_mlp"},
+    "a_mlp_image": {"kind": "a_mlp_image"},
+    "gru": {"kind": "gru"},
+    "firp": {"kind": "firp", "alpha": 0.0, "beta": 0.0},
+    "firp_ttc": {"kind": "firp", "beta": 0.0},
+    "firp_atc": {"kind": "firp", "alpha": 0.0},
+    "firp_tcr": {"kind": "firp"},
+    "oracle": {"kind": "oracle"},
+}
+DEFAULT_METHODS = ("a_mlp", "a_mlp_image", "gru", "firp", "firp_tcr", "oracle")
+NOT_RUN = {"dvd": "needs the DVD authors' published weights, which cannot be downloaded here"}
+
+
+def split_indices(labels: np.ndarray, repeat: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(train, valid, test) index arrays for repeat ``repeat``: 80/20, then 20% of train to valid."""
+    rest, test = stratified_split(labels, 0.2, seed=repeat)
+    inner_train, inner_valid = stratified_split(labels[rest], 0.2, seed=10_000 + repeat)
+    return rest[inner_train], rest[inner_valid], test
+
+
+def evaluate_method(name: str, base: TrainConfig, data: SequenceData, repeat: int, run_dir: Path,
+                    progress: bool) -> dict:
+    train_idx, valid_idx, test_idx = split_indices(data.labels.numpy(), repeat)
+    cfg = replace(base, seed=repeat, **METHODS[name])
+    started = time.perf_counter()
+    result = train_model(cfg, data.subset(train_idx), data.subset(valid_idx), checkpoint_dir=run_dir / "checkpoint",
+                         progress=progress)
+    valid, test = data.subset(valid_idx), data.subset(test_idx)
+    p_valid, p_test = predict(result.model, valid), predict(result.model, test)
+    threshold, _ = choose_threshold(valid.labels.numpy() > 0.5, p_valid)
+    y_test = test.labels.numpy() > 0.5
+    return {
+        "method": name, "repeat": repeat, "config": cfg.to_dict(),
+        "test_balanced_accuracy": balanced_accuracy(y_test, p_test >= 0.5),
+        "test_balanced_accuracy_valid_threshold": balanced_accuracy(y_test, p_test >= threshold),
+        "valid_balanced_accuracy": result.best_val_balanced_accuracy, "valid_threshold": threshold,
+        "best_epoch": result.best_epoch, "epochs_run": len(result.history),
+        "train_seconds": round(time.perf_counter() - started, 1),
+        "n_train": len(train_idx), "n_valid": len(valid_idx), "n_test": len(test_idx),
+    }
+
+
+def summary_table(rows: list[dict], methods: list[str]) -> str:
+    lines = ["| method | test balanced accuracy (mean ± std) | repeats | train s / model (median) |", "|---|---|---|---|"]
+    for name in methods:
+        vals = [r["test_balanced_accuracy"] for r in rows if r["method"] == name]
+        secs = [r["train_seconds"] for r in rows if r["method"] == name]
+        if not vals:
+            continue
+        std = statistics.stdev(vals) if len(vals) > 1 else 0.0
+        lines.append(f"| {name} | {statistics.mean(vals):.3f} ± {std:.3f} | {len(vals)} | {statistics.median(secs):.0f} |")
+    for name, why in NOT_RUN.items():
+        lines.append(f"| {name} | not run: {why} | 0 | — |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m firp.evaluate", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--repeats", type=int_in_range("--repeats", 1, 100), default=5)
+    parser.add_argument("--methods", nargs="+", choices=sorted(METHODS), default=list(DEFAULT_METHODS))
+    parser.add_argument("--epochs", type=int_in_range("--epochs", 1, 10_000), default=TrainConfig.epochs)
+    parser.add_argument("--threads", type=int_in_range("--threads", 1, 64), default=2)
+    parser.add_argument("--image-size", type=int_in_range("--image-size", 16, 512), default=84,
+                        help="backbone input size (84: the frames' own size, no resizing)")
+    parser.add_argument("--out", type=Path, default=None, help="results directory (default runs/eval-<data stem>)")
+    parser.add_argument("--cache-dir", type=Path, default=DEFAULT_CACHE_DIR, help="backbone feature cache")
+    parser.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args(argv)
+    if not args.data.exists():
+        parser.error(f"--data: {args.data} does not exist (collect it with python -m sim_worker collect)")
+    out = args.out or Path("runs") / f"eval-{args.data.stem}"
+    out.mkdir(parents=True, exist_ok=True)
+    base = TrainConfig(epochs=args.epochs, threads=args.threads,
+                       model=FIRPConfig(encoder=EncoderConfig(image_size=args.image_size)))
+    torch.set_num_threads(args.threads)
+    data = load_sequences(args.data, base.model.encoder, args.cache_dir, progress=not args.no_progress)
+    rows = []
+    for repeat in range(args.repeats):
+        for name in args.methods:
+            path = out / f"r{repeat}-{name}.json"
+            if path.exists():
+                rows.append(json.loads(path.read_text()))
+                continue
+            row = evaluate_method(name, base, data, repeat, out / f"r{repeat}-{name}", not args.no_progress)
+            path.write_text(json.dumps(row, indent=1))
+            rows.append(row)
+            print(f"repeat {repeat} {name}: test balanced accuracy {row['test_balanced_accuracy']:.3f} "
+                  f"(valid {row['valid_balanced_accuracy']:.3f}, {row['train_seconds']} s)", flush=True)
+    table = summary_table(rows, args.methods)
+    print(table)
+    command = f"python -m firp.evaluate --data {args.data} --repeats {args.repeats} --methods {' '.join(args.methods)} " \
+              f"--epochs {args.epochs} --threads {args.threads}"
+    (out / "results.json").write_text(json.dumps({
+        "command": command, "dataset": str(args.data), "dataset_hash": data.dataset_hash,
+        "machine": {"python": platform.python_version(), "torch": torch.__version__, "threads": args.threads},
+        "rows": rows, "not_run": NOT_RUN}, indent=1))
+    (out / "results.md").write_text(f"# Evaluation on {args.data}\n\n`{command}`\n\n{table}\n")
+    print(f"wrote {out / 'results.json'} and {out / 'results.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
