@@ -46,9 +46,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("docs/pictures"))
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    world = World(render=RenderConfig(height=args.size, width=args.size))
     planner = TampPlanner()
     for task in TASK_NAMES:
+        world = World(render=RenderConfig.for_task(task, args.size, args.size))
         wanted = {True, False}
         for seed in range(100):
             blocks = sample_initial_blocks(task, seed)

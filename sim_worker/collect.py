@@ -85,7 +85,7 @@ _worker: dict = {}
 def _init_worker(config: CollectConfig) -> None:
     os.environ.setdefault("MUJOCO_GL", "egl")
     _worker["config"] = config
-    _worker["world"] = World(SceneLayout(), RenderConfig(height=config.image_size, width=config.image_size))
+    _worker["world"] = World(SceneLayout(), RenderConfig.for_task(config.task, config.image_size, config.image_size))
     _worker["planner"] = TampPlanner(PlannerConfig(horizon=config.horizon))
 
 
@@ -103,6 +103,7 @@ def dataset_attrs(config: CollectConfig, layout: SceneLayout = SceneLayout()) ->
         "env": "firp-mujoco-panda", "task": config.task, "fps": FPS, "T": config.horizon,
         "image_height": config.image_size, "image_width": config.image_size, "camera": CAMERA,
         "block_names": list(BLOCK_NAMES), "seed_offset": config.seed_offset,
+        "camera_pose": asdict(RenderConfig.for_task(config.task).camera),
         "pose_error": asdict(config.pose_error), "sampler": asdict(config.sampler),
         "timestep": layout.timestep,
     }

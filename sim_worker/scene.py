@@ -81,6 +81,24 @@ class SceneLayout:
 
 
 @dataclass(frozen=True)
+class CameraPose:
+    """Where the fixed ``agentview`` camera stands and looks (world frame, metres, degrees)."""
+
+    pos: tuple[float, float, float]
+    target: tuple[float, float, float]
+    fovy: float
+
+
+#: Each task frames its workspace: stacking is seen low and from the side, so a tower's levels
+#: show and the retreating gripper does not hide them; replacement is seen from high up, so the
+#: blocks inside the boxes are not hidden by the walls.
+CAMERA_POSES: dict[str, CameraPose] = {
+    "stacking": CameraPose(pos=(0.95, 0.25, 0.35), target=(0.5, 0.0, 0.06), fovy=40.0),
+    "replacement": CameraPose(pos=(0.8, 0.0, 0.95), target=(0.40, 0.0, 0.0), fovy=42.0),
+}
+
+
+@dataclass(frozen=True)
 class RenderConfig:
     """Camera image settings. 84x84 as robomimic's default; shadows off (they cost 5-30x)."""
 
@@ -88,9 +106,14 @@ class RenderConfig:
     width: int = 84
     shadows: bool = False
     visual_meshes: bool = False
-    camera_pos: tuple[float, float, float] = (0.8, 0.0, 0.95)
-    camera_target: tuple[float, float, float] = (0.40, 0.0, 0.0)
-    camera_fovy: float = 42.0
+    camera: CameraPose = CAMERA_POSES["replacement"]
+
+    @classmethod
+    def for_task(cls, task: str, height: int = 84, width: int = 84) -> "RenderConfig":
+        """The task's camera framing at the given image size."""
+        if task not in CAMERA_POSES:
+            raise ValueError(f"task: unknown task {task!r}; expected one of {sorted(CAMERA_POSES)}")
+        return cls(height=height, width=width, camera=CAMERA_POSES[task])
 
 
 def _look_at_xyaxes(pos: np.ndarray, target: np.ndarray) -> list[float]:
@@ -154,9 +177,9 @@ def build_spec(layout: SceneLayout = SceneLayout(), render: RenderConfig = Rende
                       mass=layout.block_mass, rgba=BLOCK_COLOURS[name], friction=list(layout.block_friction),
                       condim=4)
 
-    pos = np.asarray(render.camera_pos, dtype=float)
-    world.add_camera(name=CAMERA, pos=list(pos), xyaxes=_look_at_xyaxes(pos, np.asarray(render.camera_target)),
-                     fovy=render.camera_fovy)
+    pos = np.asarray(render.camera.pos, dtype=float)
+    world.add_camera(name=CAMERA, pos=list(pos), xyaxes=_look_at_xyaxes(pos, np.asarray(render.camera.target, dtype=float)),
+                     fovy=render.camera.fovy)
     spec.body("hand").add_camera(name=WRIST_CAMERA, pos=[0.05, 0.0, 0.0], xyaxes=[0, -1, 0, 1, 0, 0],
                                  fovy=70.0)
     # the Menagerie keyframe only covers the arm; extend it with the blocks' free joints
