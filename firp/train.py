@@ -127,6 +127,8 @@ def train_model(cfg: TrainConfig, train: SequenceData, valid: SequenceData, chec
     torch.manual_seed(cfg.seed)
     model_cfg = _with_loss_weights(cfg)
     model = build_model(cfg.kind, model_cfg)
+    if hasattr(model, "action_norm"):
+        model.action_norm.fit(train.actions)  # training-set statistics, saved with the weights
     optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     ckpt = Path(checkpoint_dir) if checkpoint_dir else None
     history: list[dict] = []

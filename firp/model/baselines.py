@@ -25,6 +25,7 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
+from firp.model.normalize import ActionNormalizer
 from firp.model.config import FIRPConfig
 from firp.model.encoder import FeatureProjection
 from firp.model.firp import FIRP, Score, first_step
@@ -70,9 +71,11 @@ class AMLP(nn.Module):
         b = cfg.baseline
         d_plan = cfg.action_dim * (b.max_T if b.plan_pooling == "flatten" else 1)
         self.mlp = _mlp3(d_plan, b.hidden)
+        self.action_norm = ActionNormalizer(cfg.action_dim)
 
     def _logits(self, actions: Tensor, mask: Tensor | None) -> Tensor:
         b = self.cfg.baseline
+        actions = self.action_norm(actions)
         return self.mlp(plan_vector(actions, mask, b.plan_pooling, b.max_T)).squeeze(-1)  # (B,)
 
     def forward_train(self, features: Tensor | None, actions: Tensor, mask: Tensor | None = None, **_: object) -> dict[str, Tensor]:
@@ -95,11 +98,12 @@ class AMLPImage(nn.Module):
         d_plan = cfg.action_dim * (b.max_T if b.plan_pooling == "flatten" else 1)
         self.projection = FeatureProjection(cfg.encoder)
         self.mlp = _mlp3(d_plan + cfg.encoder.feature_dim, b.hidden)
+        self.action_norm = ActionNormalizer(cfg.action_dim)
 
     def _logits(self, features: Tensor, actions: Tensor, mask: Tensor | None) -> Tensor:
         b = self.cfg.baseline
         e1 = self.projection(first_step(features))  # (B, E)
-        plan = plan_vector(actions, mask, b.plan_pooling, b.max_T)
+        plan = plan_vector(self.action_norm(actions), mask, b.plan_pooling, b.max_T)
         return self.mlp(torch.cat([plan, e1], dim=-1)).squeeze(-1)
 
     def forward_train(self, features: Tensor, actions: Tensor, mask: Tensor | None = None, **_: object) -> dict[str, Tensor]:
@@ -130,9 +134,11 @@ class GRUBaseline(nn.Module):
         self.gru = nn.GRU(A, Hg, batch_first=True)
         self.readout = nn.Linear(Hg, E)
         self.head = SuccessHead(cfg.head, E)
+        self.action_norm = ActionNormalizer(A)
 
     def _predict(self, e1: Tensor, actions: Tensor) -> Tensor:
         """``e1`` (B, E), ``actions`` (B, T, A) -> [e_1, e^_2..e^_T] (B, T, E)."""
+        actions = self.action_norm(actions)
         h1 = torch.tanh(self.init(torch.cat([e1, actions[:, 0]], dim=-1)))  # (B, Hg)
         if actions.shape[1] == 1:
             return e1.unsqueeze(1)

@@ -16,6 +16,7 @@ from torch import Tensor, nn
 from firp.model.config import FIRPConfig
 from firp.model.encoder import FeatureProjection, ImageEncoder
 from firp.model.head import SuccessHead
+from firp.model.normalize import ActionNormalizer
 from firp.model.rssm import RSSM
 
 __all__ = ["FIRP", "Score", "first_step"]
@@ -51,6 +52,7 @@ class FIRP(nn.Module):
         self.projection = FeatureProjection(cfg.encoder)
         self.rssm = RSSM(cfg.rssm, E, cfg.action_dim)
         self.head = SuccessHead(cfg.head, E)
+        self.action_norm = ActionNormalizer(cfg.action_dim)
 
     def image_encoder(self) -> ImageEncoder:
         """An :class:`ImageEncoder` (builds/loads the backbone) sharing this model's projection."""
@@ -83,6 +85,7 @@ class FIRP(nn.Module):
           [e_1, e^_2..e^_T] from the open loop, i.e. what ``score`` computes (up to sampling).
         """
         e = self.projection(features)  # (B, T, E)
+        actions = self.action_norm(actions)  # one-hot columns unchanged, so categories stay readable
         obs = self.rssm.observe(e, actions, sample=sample)
         open_loop = self.rssm.imagine(obs["h"][:, 0], obs["post_sample"][:, 0], actions[:, 1:], sample=sample)
         seq_ol = torch.cat([e[:, :1], open_loop["feat"]], dim=1) if actions.shape[1] > 1 else e[:, :1]
@@ -117,6 +120,6 @@ class FIRP(nn.Module):
         the means, so one plan always gets one score.
         """
         e1 = self.projection(first_step(first_features))  # (B, E)
-        roll = self.rssm.rollout_from_first(e1, actions, sample=sample)
+        roll = self.rssm.rollout_from_first(e1, self.action_norm(actions), sample=sample)
         logits, weights = self.head(roll["features"], mask)
         return Score(logits, weights, roll["features"])
