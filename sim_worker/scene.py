@@ -8,7 +8,7 @@ to clients with the object poses, so the planner never imports these constants.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import mujoco
 import numpy as np

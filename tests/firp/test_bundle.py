@@ -28,15 +28,6 @@ from .bundle_helpers import T_RANGE, export_tiny, tiny_backbone, tiny_members
 from .model.helpers import TINY
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    torch.manual_seed(0)
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.fixture
 def bundle_dir(tmp_path: Path) -> Path:
     return export_tiny(tmp_path / "bundle", tiny_members(("firp", "firp", "a_mlp_image")))

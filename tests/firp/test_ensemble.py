@@ -16,15 +16,6 @@ from .bundle_helpers import T_RANGE, export_tiny, random_image, tiny_backbone, t
 from .model.helpers import TINY
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    torch.manual_seed(0)
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.fixture
 def exported(tmp_path):
     """(members, backbone, bundle) of a 3-member FIRP ensemble, before and after the round trip."""

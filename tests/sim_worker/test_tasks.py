@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 
-from sim_worker.executor import ExecutorConfig
 from sim_worker.scene import SceneLayout
 from sim_worker.tasks import TASK_NAMES, SamplerConfig, judge, sample_initial_blocks, square_gap
 
@@ -80,7 +79,7 @@ def test_block_left_in_box_a_fails(small_world):
 
 def test_moving_block_is_not_at_rest(small_world):
     poses = [[0.5, 0.0, H, 0.0], [0.5, 0.0, 3 * H + 0.0005, 0.0], [0.5, 0.0, 5 * H + 0.001, 0.0]]
-    states = settle(small_world, poses)
+    settle(small_world, poses)
     small_world.data.qvel[small_world.blocks.qvel[2]] = 0.5
     verdict = judge("stacking", small_world.block_states())
     assert not verdict.success and "not at rest" in verdict.reason

@@ -1,4 +1,4 @@
-"""Every model test starts from the same random state, on one CPU thread.
+"""Every method test (tests/firp) starts from the same random state, on one CPU thread.
 
 One thread: the tensors here are tiny, and with two OpenMP threads each op waits at a barrier for
 the second core; when that core is busy (a benchmark or a sim worker next to the tests) every op
