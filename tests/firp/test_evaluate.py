@@ -5,26 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from firp.contract import make_plan
-from firp.episodes import EpisodeRecord, consolidate, write_episode_part
 from firp.evaluate import main, split_indices
 
-T = 10
-
-
-@pytest.fixture(scope="module")
-def tiny_dataset(tmp_path_factory):
-    root = tmp_path_factory.mktemp("evaldata")
-    rng = np.random.default_rng(0)
-    for i in range(20):
-        success = bool(i % 2)
-        frames = rng.integers(0, 255, (T, 32, 32, 3), dtype=np.uint8)
-        frames[:, :8, :8] = 255 if success else 0  # the image tells the label apart
-        targets = np.tile([0, 0, 0, -1.5, 0, 1.5, 0, 0.02, 0.02], (T, 1)) + rng.normal(0, 0.001, (T, 9))
-        plan = make_plan(np.arange(T) % 7, targets).astype(np.float32)
-        write_episode_part(root / "parts", i, EpisodeRecord(frames, plan, np.zeros((T, 3)), success, {"seed": i}))
-    consolidate(root / "parts", root / "tiny.h5", {"fps": 4, "T": T, "task": "stacking"})
-    return root / "tiny.h5"
 
 
 def test_splits_are_disjoint_stratified_and_cover_everything():

@@ -1,0 +1,37 @@
+"""Tuning end to end on a micro-dataset: study → top trials → bundle → load → score (the CI path)."""
+
+import numpy as np
+import optuna
+
+from firp.bundle import load_bundle
+from firp.ensemble import EnsembleScorer
+from firp.episodes import EpisodeDataset
+from firp.tune import main, top_trials
+
+
+def test_tune_export_load_score(tiny_dataset, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    storage = f"sqlite:///{tmp_path / 'study.db'}"
+    argv = ["--data", str(tiny_dataset), "--trials", "3", "--epochs", "2", "--threads", "1", "--image-size", "32",
+            "--storage", storage, "--cache-dir", str(tmp_path / "cache"), "--no-progress"]
+    assert main(argv) == 0
+    study = optuna.load_study(study_name=f"firp-{tiny_dataset.stem}", storage=storage)
+    assert len([t for t in study.trials if t.state == optuna.trial.TrialState.COMPLETE]) == 3
+    # asking for 4 trials resumes the study: one more, none repeated
+    assert main([*argv[:3], "4", *argv[4:]]) == 0
+    study = optuna.load_study(study_name=f"firp-{tiny_dataset.stem}", storage=storage)
+    assert len(study.trials) == 4 and len(top_trials(study, 5)) == 4
+    for t in study.trials:
+        assert t.params["lr"] in (1e-5, 1e-4, 3e-4, 1e-3) and t.params["alpha"] in (1e-3, 1e-2, 1e-1, 0.0)
+
+    bundle_dir = tmp_path / "bundle"
+    assert main([*argv[:3], "0", *argv[4:], "--export", str(bundle_dir)]) == 0
+    bundle = load_bundle(bundle_dir)
+    assert len(bundle.models) == 4 and 0.0 <= bundle.threshold <= 1.0
+    assert (tmp_path / "bundle_reliability.png").stat().st_size > 0
+    with EpisodeDataset(tiny_dataset) as ds:
+        image, plan = ds.frames(0)[0], ds.actions(0)
+    result = EnsembleScorer(bundle).score(image, np.stack([plan, plan]))
+    assert result.probabilities.shape == (2,) and np.all((0 <= result.probabilities) & (result.probabilities <= 1))
+    assert result.member_probabilities.shape == (4, 2)
+    np.testing.assert_allclose(result.probabilities[0], result.probabilities[1], atol=1e-6)
