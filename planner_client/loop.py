@@ -48,9 +48,9 @@ def run_trials(config: RunConfig, sim: EmbeddedSim, planner: TampPlanner) -> Ite
     config.out.parent.mkdir(parents=True, exist_ok=True)
     if config.out.exists() and not config.resume:
         raise FileExistsError(f"--out: {config.out} exists; pass --resume to continue it or choose another file")
-    done = {r["trial"] for r in read_records(config.out)}
-    # rewrite without a torn tail so appends start on a clean line
     records = read_records(config.out)
+    done = {r["trial"] for r in records}
+    # rewrite without a torn tail so appends start on a clean line
     config.out.write_text("".join(json.dumps(r) + "\n" for r in records))
     orders = block_orders()[: config.max_iterations]
     with config.out.open("a") as sink:
