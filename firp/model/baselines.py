@@ -60,23 +60,32 @@ def _mlp3(d_in: int, hidden: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(d_in, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, 1))
 
 
-class AMLP(nn.Module):
-    """A-MLP: success from the plan alone (no image). 3-layer MLP over the (flattened) plan."""
+class _PlanMLP(nn.Module):
+    """Shared by the A-MLP baselines: the standardised (flattened or pooled) plan into a 3-layer MLP."""
 
     requires_future_frames = False
 
-    def __init__(self, cfg: FIRPConfig = FIRPConfig()):
+    def __init__(self, cfg: FIRPConfig, extra_dim: int = 0):
         super().__init__()
         self.cfg = cfg
         b = cfg.baseline
         d_plan = cfg.action_dim * (b.max_T if b.plan_pooling == "flatten" else 1)
-        self.mlp = _mlp3(d_plan, b.hidden)
+        self.mlp = _mlp3(d_plan + extra_dim, b.hidden)
         self.action_norm = ActionNormalizer(cfg.action_dim)
 
-    def _logits(self, actions: Tensor, mask: Tensor | None) -> Tensor:
+    def _plan(self, actions: Tensor, mask: Tensor | None) -> Tensor:
         b = self.cfg.baseline
-        actions = self.action_norm(actions)
-        return self.mlp(plan_vector(actions, mask, b.plan_pooling, b.max_T)).squeeze(-1)  # (B,)
+        return plan_vector(self.action_norm(actions), mask, b.plan_pooling, b.max_T)
+
+
+class AMLP(_PlanMLP):
+    """A-MLP: success from the plan alone (no image). 3-layer MLP over the (flattened) plan."""
+
+    def __init__(self, cfg: FIRPConfig = FIRPConfig()):
+        super().__init__(cfg)
+
+    def _logits(self, actions: Tensor, mask: Tensor | None) -> Tensor:
+        return self.mlp(self._plan(actions, mask)).squeeze(-1)  # (B,)
 
     def forward_train(self, features: Tensor | None, actions: Tensor, mask: Tensor | None = None, **_: object) -> dict[str, Tensor]:
         """``features`` are ignored (may be None); returns ``{"logits": (B,)}``."""
@@ -86,25 +95,16 @@ class AMLP(nn.Module):
         return Score(self._logits(actions, mask), None, None)
 
 
-class AMLPImage(nn.Module):
+class AMLPImage(_PlanMLP):
     """A-MLP+image: plan + projected feature of the initial image, 3-layer MLP."""
 
-    requires_future_frames = False
-
     def __init__(self, cfg: FIRPConfig = FIRPConfig()):
-        super().__init__()
-        self.cfg = cfg
-        b = cfg.baseline
-        d_plan = cfg.action_dim * (b.max_T if b.plan_pooling == "flatten" else 1)
+        super().__init__(cfg, extra_dim=cfg.encoder.feature_dim)
         self.projection = FeatureProjection(cfg.encoder)
-        self.mlp = _mlp3(d_plan + cfg.encoder.feature_dim, b.hidden)
-        self.action_norm = ActionNormalizer(cfg.action_dim)
 
     def _logits(self, features: Tensor, actions: Tensor, mask: Tensor | None) -> Tensor:
-        b = self.cfg.baseline
         e1 = self.projection(first_step(features))  # (B, E)
-        plan = plan_vector(self.action_norm(actions), mask, b.plan_pooling, b.max_T)
-        return self.mlp(torch.cat([plan, e1], dim=-1)).squeeze(-1)
+        return self.mlp(torch.cat([self._plan(actions, mask), e1], dim=-1)).squeeze(-1)
 
     def forward_train(self, features: Tensor, actions: Tensor, mask: Tensor | None = None, **_: object) -> dict[str, Tensor]:
         """Reads frame 0 of ``features`` only; returns ``{"logits": (B,)}``."""
