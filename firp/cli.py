@@ -6,40 +6,30 @@ import argparse
 from typing import Callable
 
 
-def int_in_range(name: str, low: int, high: int) -> Callable[[str], int]:
-    """Parse an integer flag that must lie in ``[low, high]``."""
-    def parse(text: str) -> int:
+def _checked(name: str, cast: Callable[[str], float], kind: str, ok: Callable[[float], bool],
+             rule: str) -> Callable[[str], float]:
+    """A parser that casts the flag's text and checks it, naming the flag and the rule on failure."""
+    def parse(text: str):
         try:
-            value = int(text)
+            value = cast(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be an integer, got {text!r}") from None
-        if not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"{name} must be in [{low}, {high}], got {value}")
+            raise argparse.ArgumentTypeError(f"{name} must be {kind}, got {text!r}") from None
+        if not ok(value):
+            raise argparse.ArgumentTypeError(f"{name} must be {rule}, got {value}")
         return value
     return parse
+
+
+def int_in_range(name: str, low: int, high: int) -> Callable[[str], int]:
+    """Parse an integer flag that must lie in ``[low, high]``."""
+    return _checked(name, int, "an integer", lambda v: low <= v <= high, f"in [{low}, {high}]")
 
 
 def non_negative_float(name: str) -> Callable[[str], float]:
     """Parse a float flag that must be finite and >= 0."""
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be a number, got {text!r}") from None
-        if not 0.0 <= value < float("inf"):
-            raise argparse.ArgumentTypeError(f"{name} must be >= 0, got {value}")
-        return value
-    return parse
+    return _checked(name, float, "a number", lambda v: 0.0 <= v < float("inf"), ">= 0")
 
 
 def open_unit_fraction(name: str) -> Callable[[str], float]:
     """Parse a fraction flag that must lie strictly between 0 and 1."""
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be a number, got {text!r}") from None
-        if not 0.0 < value < 1.0:
-            raise argparse.ArgumentTypeError(f"{name} must be in (0, 1), got {value}")
-        return value
-    return parse
+    return _checked(name, float, "a number", lambda v: 0.0 < v < 1.0, "in (0, 1)")
