@@ -13,8 +13,9 @@ export MUJOCO_GL
 TRIALS ?= 50
 PYTEST_ARGS ?=
 
-# EGL/OSMesa runtime libraries MuJoCo's renderer loads by name (libEGL.so.1, libOSMesa.so.*).
-APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libosmesa6
+# EGL/OSMesa runtime libraries MuJoCo's renderer loads by name (libEGL.so.1, libOSMesa.so.*), and
+# docker-compose (v1), which validates docker-compose.yml without a Docker engine (tests/test_compose.py).
+APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libosmesa6 docker-compose
 
 .PHONY: install system-deps test run clean
 

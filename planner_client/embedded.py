@@ -1,8 +1,9 @@
 """An in-process simulator backend: what the planner client uses when no sim worker URL is given.
 
 It offers the same two calls as the sim worker's HTTP API (start an episode and get the
-observation; execute a plan from that episode's initial state), so the loop does not care which
-one it talks to.
+observation and initial image; execute a plan from that episode's initial state), both satisfying
+:class:`planner_client.backend.SimBackend`, so the loop does not care which one it talks to. Both
+start episodes through ``sim_worker.worlds.TaskWorlds``, so they give identical episodes.
 """
 
 from __future__ import annotations
@@ -11,10 +12,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim_worker.executor import ExecutorConfig, execute_plan
-from sim_worker.perception import PoseErrorConfig, observation
-from sim_worker.tasks import sample_initial_blocks
-from sim_worker.world import World
+from sim_worker.imaging import encode_png_b64
+from sim_worker.perception import PoseErrorConfig
+from sim_worker.worlds import TaskWorlds
 
 
 @dataclass
@@ -23,6 +23,7 @@ class Episode:
     seed: int
     observation: dict
     true_blocks: np.ndarray = field(repr=False)
+    image_b64: str = field(default="", repr=False)
 
 
 @dataclass(frozen=True)
@@ -33,19 +34,19 @@ class Outcome:
 
 
 class EmbeddedSim:
-    """Runs the MuJoCo world in this process (no frames recorded: the loop only needs labels)."""
+    """Runs the MuJoCo worlds in this process (no frames recorded: the loop only needs labels)."""
 
-    def __init__(self, pose_error: PoseErrorConfig = PoseErrorConfig()):
-        self.world = World()
+    def __init__(self, pose_error: PoseErrorConfig = PoseErrorConfig(), image_size: int = 84):
+        self.worlds = TaskWorlds(image_size)
         self.pose_error = pose_error
 
     def start(self, task: str, seed: int) -> Episode:
-        blocks = sample_initial_blocks(task, seed, self.world.layout)
-        return Episode(task, seed, observation(blocks, seed, self.world.layout, self.pose_error), blocks)
+        start = self.worlds.begin(task, seed, self.pose_error)
+        return Episode(task, seed, start.observation, start.true_blocks, encode_png_b64(start.image))
 
     def execute(self, episode: Episode, plan: np.ndarray) -> Outcome:
-        r = execute_plan(self.world, episode.task, episode.true_blocks, plan, ExecutorConfig(record_frames=False))
+        r = self.worlds.execute(episode.task, episode.true_blocks, plan, record_frames=False)
         return Outcome(r.success, r.reason, r.sim_seconds)
 
     def close(self) -> None:
-        self.world.close()
+        self.worlds.close()

@@ -13,9 +13,9 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
-from planner_client.embedded import EmbeddedSim
+from planner_client.backend import SimBackend
 from planner_client.tamp import TampPlanner, block_orders
 
 
@@ -43,7 +43,7 @@ def read_records(path: Path) -> list[dict]:
     return records
 
 
-def run_trials(config: RunConfig, sim: EmbeddedSim, planner: TampPlanner) -> Iterator[dict]:
+def run_trials(config: RunConfig, sim: SimBackend[Any], planner: TampPlanner) -> Iterator[dict]:
     """Run the pending trials, appending one JSON line per finished trial; yields each record."""
     config.out.parent.mkdir(parents=True, exist_ok=True)
     if config.out.exists() and not config.resume:

@@ -1,4 +1,4 @@
-"""Command line of the sim worker: ``python -m sim_worker collect ...``."""
+"""Command line of the sim worker: ``python -m sim_worker collect ...`` and ``python -m sim_worker serve ...``."""
 
 from __future__ import annotations
 
@@ -34,18 +34,54 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--valid-fraction", type=open_unit_fraction("--valid-fraction"), default=None,
                    help="also write a stratified mask/train|valid split with this validation share")
     c.add_argument("--no-progress", action="store_true")
+
+    s = sub.add_parser("serve", help="serve the HTTP API (episodes, plan execution); settings also from FIRP_SIM_* "
+                                     "environment variables, which these flags override")
+    s.add_argument("--host", default="127.0.0.1")
+    s.add_argument("--port", type=int_in_range("--port", 1, 65535), default=8002,
+                   help="default 8002 (the scoring service defaults to 8001)")
+    s.add_argument("--image-size", type=int_in_range("--image-size", 16, 512), default=None,
+                   help="camera image size in px (FIRP_SIM_IMAGE_SIZE, default 84: the datasets' size)")
+    s.add_argument("--pose-error-mm", type=non_negative_float("--pose-error-mm"), default=None,
+                   help="default pose estimate error in the plane (FIRP_SIM_POSE_ERROR_MM, default 3)")
+    s.add_argument("--pose-error-deg", type=non_negative_float("--pose-error-deg"), default=None,
+                   help="default yaw estimate error (FIRP_SIM_POSE_ERROR_DEG, default 3)")
+    s.add_argument("--max-episodes", type=int_in_range("--max-episodes", 1, 1_000_000), default=None,
+                   help="episodes kept at once, oldest evicted (FIRP_SIM_MAX_EPISODES, default 1024)")
+    s.add_argument("--episode-ttl-seconds", type=non_negative_float("--episode-ttl-seconds"), default=None,
+                   help="episode lifetime (FIRP_SIM_EPISODE_TTL_SECONDS, default 3600)")
+    s.add_argument("--log-level", choices=("critical", "error", "warning", "info", "debug"), default="info")
     return parser
+
+
+def serve(args: argparse.Namespace) -> int:
+    import uvicorn
+    from pydantic import ValidationError
+
+    from sim_worker.app import create_app
+    from sim_worker.settings import SimWorkerSettings
+
+    flags = {"image_size": args.image_size, "pose_error_mm": args.pose_error_mm, "pose_error_deg": args.pose_error_deg,
+             "max_episodes": args.max_episodes, "episode_ttl_seconds": args.episode_ttl_seconds}
+    try:
+        settings = SimWorkerSettings(**{k: v for k, v in flags.items() if v is not None})
+    except ValidationError as exc:
+        print(f"error: invalid sim worker settings (flags or FIRP_SIM_* variables):\n{exc}", file=sys.stderr)
+        return 2
+    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level=args.log_level)
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "egl")
+    if args.command == "serve":
+        return serve(args)
     if args.command == "collect":
         from sim_worker.collect import CollectConfig, collect
         from sim_worker.perception import PoseErrorConfig
 
-        error = PoseErrorConfig(xy_std=args.pose_error_mm / 1000.0, z_std=min(args.pose_error_mm, 1.0) / 1000.0,
-                                yaw_std_deg=args.pose_error_deg)
+        error = PoseErrorConfig.from_mm_deg(args.pose_error_mm, args.pose_error_deg)
         config = CollectConfig(task=args.task, episodes=args.episodes, out=args.out, workers=args.workers,
                                seed_offset=args.seed_offset, horizon=args.horizon, image_size=args.image_size,
                                pose_error=error, valid_fraction=args.valid_fraction)

@@ -27,6 +27,15 @@ class PoseErrorConfig:
     def none(cls) -> "PoseErrorConfig":
         return cls(0.0, 0.0, 0.0)
 
+    @classmethod
+    def from_mm_deg(cls, error_mm: float, error_deg: float) -> "PoseErrorConfig":
+        """The error the command lines and the HTTP API describe with two numbers.
+
+        ``error_mm`` is the in-plane std; the height error is capped at 1 mm because blocks rest
+        on a known surface, so a depth estimate is far better than the in-plane one.
+        """
+        return cls(xy_std=error_mm / 1000.0, z_std=min(error_mm, 1.0) / 1000.0, yaw_std_deg=error_deg)
+
 
 def estimate_block_poses(true_poses: np.ndarray, seed: int, config: PoseErrorConfig = PoseErrorConfig()) -> np.ndarray:
     """Noisy estimates ``(n, 4)`` of block poses (x, y, z, yaw), seeded by the episode seed."""

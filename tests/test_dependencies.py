@@ -26,7 +26,9 @@ def test_contract_and_episodes_import_neither_torch_nor_mujoco():
 
 @pytest.mark.parametrize("modules", [
     ["sim_worker.world", "sim_worker.executor", "sim_worker.collect", "sim_worker.__main__"],
+    ["sim_worker.app", "sim_worker.settings", "sim_worker.schemas"],
     ["planner_client.tamp", "planner_client.ik"],
+    ["planner_client.clients", "planner_client.launcher", "planner_client.embedded", "planner_client.__main__"],
 ])
 def test_sim_worker_and_planner_never_import_torch(modules):
     assert "torch" not in _heavy_modules_after_importing(modules)

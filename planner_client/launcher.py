@@ -1,0 +1,164 @@
+"""The embedded launcher: the scoring service and the sim worker as local subprocesses for one run.
+
+``with Launcher(out_dir, bundle=...) as services:`` starts both on free loopback ports (in parallel),
+waits for their ``/readyz``, and gives ``services.service_url`` / ``services.sim_url``; leaving the
+block stops them (SIGTERM, then SIGKILL). Their logs go to ``<out_dir>/logs/``.
+
+A long run must not lose trials to a crashed sim worker. ``services.sim()`` returns a
+:class:`RestartingSim`: a simulator backend that, when the worker is unreachable or failing after
+the client's retries, restarts it (on a new port) and repeats the call. Episodes are determined by
+(task, seed, pose error), so the :class:`SimClient` re-creates an episode the new worker does not
+know, and the trial carries on as if nothing happened; ``services.sim_restarts`` counts restarts.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from pathlib import Path
+from typing import Callable, Mapping, Sequence, TypeVar
+
+import numpy as np
+
+from planner_client.clients import RemoteEpisode, RemoteOutcome, ScoreClient, SimClient
+from planner_client.processes import ManagedServer
+from planner_client.transport import RetryPolicy, ServiceUnavailable
+
+log = logging.getLogger("planner_client.launcher")
+R = TypeVar("R")
+
+
+class Launcher:
+    """Runs the sim worker and, when a bundle is given, the scoring service, until :meth:`stop`."""
+
+    def __init__(self, out_dir: Path, bundle: Path | None = None, *, ready_timeout: float = 180.0,
+                 stop_timeout: float = 10.0, sim_args: Sequence[str] = (), service_args: Sequence[str] = (),
+                 env: Mapping[str, str] | None = None):
+        log_dir = Path(out_dir) / "logs"
+        common = {"ready_timeout": ready_timeout, "stop_timeout": stop_timeout,
+                  "env": {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), **(env or {})}}
+        self.sim_server = ManagedServer(
+            "sim_worker",
+            lambda port: [sys.executable, "-m", "sim_worker", "serve", "--host", "127.0.0.1", "--port", str(port),
+                          *sim_args],
+            log_dir, **common)
+        self.service_server: ManagedServer | None = None
+        if bundle is not None:
+            self.service_server = ManagedServer(
+                "service",
+                lambda port: [sys.executable, "-m", "service", "--host", "127.0.0.1", "--port", str(port),
+                              "--bundle", str(bundle), *service_args],
+                log_dir, **common)
+
+    @property
+    def servers(self) -> list[ManagedServer]:
+        return [s for s in (self.service_server, self.sim_server) if s is not None]
+
+    # -- lifecycle ------------------------------------------------------------------------------
+    def start(self) -> "Launcher":
+        """Start all servers together and wait for each; if one fails, stop all and raise its error."""
+        try:
+            for server in self.servers:
+                server.spawn()
+            for server in self.servers:
+                server.wait_ready()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def stop(self) -> None:
+        for server in self.servers:
+            server.stop()
+
+    def __enter__(self) -> "Launcher":
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # -- where they are -----------------------------------------------------------------------
+    @property
+    def sim_url(self) -> str:
+        return self.sim_server.url
+
+    @property
+    def service_url(self) -> str:
+        if self.service_server is None:
+            raise RuntimeError("no scoring service: the launcher was started without a bundle")
+        return self.service_server.url
+
+    @property
+    def sim_restarts(self) -> int:
+        return max(0, self.sim_server.starts - 1)
+
+    # -- recovery -------------------------------------------------------------------------------
+    def sim_alive(self) -> bool:
+        return self.sim_server.alive()
+
+    def restart_sim(self) -> str:
+        """Stop the sim worker if it still runs, start a new one on a new port; its URL."""
+        log.warning("restarting the sim worker (was at %s, %s)", self.sim_server.url,
+                    "running" if self.sim_alive() else "dead")
+        return self.sim_server.restart()
+
+    def restart_sim_if_dead(self) -> bool:
+        """Restart the sim worker if its process has exited; whether it did."""
+        if self.sim_alive():
+            return False
+        self.restart_sim()
+        return True
+
+    # -- clients --------------------------------------------------------------------------------
+    def sim(self, **client_options) -> "RestartingSim":
+        """A simulator backend on this launcher's sim worker that survives the worker dying."""
+        return RestartingSim(self, **client_options)
+
+    def score_client(self, api_key: str | None = None, **client_options) -> ScoreClient:
+        return ScoreClient(self.service_url, api_key, **client_options)
+
+
+class RestartingSim:
+    """A :class:`SimClient` that restarts the launcher's sim worker when it stops answering.
+
+    The client first retries with backoff (a busy or briefly unreachable worker recovers by
+    itself); only when that fails is the worker restarted -- dead or hung alike -- and the call
+    repeated, at most ``max_restarts`` times per call. Rejected requests (4xx) are not retried.
+    """
+
+    def __init__(self, launcher: Launcher, max_restarts: int = 2, retry: RetryPolicy = RetryPolicy(),
+                 **client_options):
+        self.launcher = launcher
+        self.max_restarts = max_restarts
+        self._client_options = {"retry": retry, **client_options}
+        self.client = SimClient(launcher.sim_url, **self._client_options)
+
+    def _call(self, call: Callable[[SimClient], R]) -> R:
+        for restart in range(self.max_restarts + 1):
+            if self.client.base_url != self.launcher.sim_url:  # someone else restarted it meanwhile
+                self._reconnect()
+            try:
+                return call(self.client)
+            except ServiceUnavailable as exc:
+                if restart == self.max_restarts:
+                    raise ServiceUnavailable(exc.service, exc.url,
+                                             f"{exc} (gave up after {self.max_restarts} restarts of the sim worker; "
+                                             f"its log: {self.launcher.sim_server.log_path})") from exc
+                log.warning("sim worker failed (%s); restarting it", exc)
+                self.launcher.restart_sim()
+                self._reconnect()
+        raise AssertionError("unreachable")
+
+    def _reconnect(self) -> None:
+        self.client.close()
+        self.client = SimClient(self.launcher.sim_url, **self._client_options)
+
+    def start(self, task: str, seed: int) -> RemoteEpisode:
+        return self._call(lambda c: c.start(task, seed))
+
+    def execute(self, episode: RemoteEpisode, plan: np.ndarray, record_frames: bool = False) -> RemoteOutcome:
+        return self._call(lambda c: c.execute(episode, plan, record_frames))
+
+    def close(self) -> None:
+        self.client.close()

@@ -1,0 +1,128 @@
+"""JSON over HTTP with timeouts, retries and errors that name the service and its URL.
+
+Both services the planner talks to are plain JSON APIs behind the same failure modes: a process
+that is starting (connection refused, 503 from ``/readyz``), one that died or is overloaded
+(connection errors, 5xx), and a request that is wrong (4xx). Only the first two are worth
+retrying, with exponential backoff; a 4xx would fail the same way again, so it is raised at once
+with the service's ``{"error": {"field", "rule", "message"}}`` details.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import httpx
+
+
+@dataclass(frozen=True)
+class RetryPolicy:
+    """``attempts`` tries in all; the wait before retry ``k`` (1-based) is ``base_delay * 2**(k-1)``,
+    capped at ``max_delay``."""
+
+    attempts: int = 4
+    base_delay: float = 0.25
+    max_delay: float = 4.0
+
+    def delay(self, retry: int) -> float:
+        return min(self.max_delay, self.base_delay * 2 ** (retry - 1))
+
+
+class ServiceError(RuntimeError):
+    """A call to ``service`` at ``url`` failed."""
+
+    def __init__(self, service: str, url: str, message: str):
+        super().__init__(message)
+        self.service = service
+        self.url = url
+
+
+class ServiceUnavailable(ServiceError):
+    """Unreachable, failing with 5xx, or not ready: after all retries. Restarting it may help."""
+
+
+class RequestRejected(ServiceError):
+    """A 4xx: the request is wrong; ``field`` and ``rule`` say how (when the service says)."""
+
+    def __init__(self, service: str, url: str, status: int, field: str | None, rule: str | None, detail: str):
+        where = f" (field {field!r}, rule {rule!r})" if field or rule else ""
+        super().__init__(service, url, f"{service} at {url} rejected the request with HTTP {status}{where}: {detail}")
+        self.status = status
+        self.field = field
+        self.rule = rule
+        self.detail = detail
+
+
+def _error_details(response: httpx.Response) -> tuple[str | None, str | None, str]:
+    """field, rule, message from our error shape, FastAPI's default shape, or the raw text."""
+    try:
+        body = response.json()
+    except ValueError:
+        return None, None, response.text[:500] or response.reason_phrase
+    if isinstance(body, dict) and isinstance(body.get("error"), dict):
+        err = body["error"]
+        return err.get("field"), err.get("rule"), str(err.get("message", err))
+    if isinstance(body, dict) and "detail" in body:
+        return None, None, str(body["detail"])[:500]
+    return None, None, str(body)[:500]
+
+
+class JsonHttp:
+    """A retrying JSON client for one service (``name`` appears in every error message)."""
+
+    def __init__(self, name: str, base_url: str, *, timeout: float = 60.0, connect_timeout: float = 3.0,
+                 retry: RetryPolicy = RetryPolicy(), headers: dict[str, str] | None = None,
+                 sleep: Callable[[float], None] = time.sleep):
+        self.name = name
+        self.base_url = base_url.rstrip("/")
+        self.retry = retry
+        self._sleep = sleep
+        self._client = httpx.Client(base_url=self.base_url, headers=headers or {},
+                                    timeout=httpx.Timeout(timeout, connect=connect_timeout))
+
+    def request(self, method: str, path: str, json: Any = None) -> httpx.Response:
+        """The 2xx response; raises :class:`RequestRejected` on 4xx at once, :class:`ServiceUnavailable`
+        when connection errors or 5xx persist through every attempt."""
+        url = self.base_url + path
+        last = ""
+        for attempt in range(1, self.retry.attempts + 1):
+            if attempt > 1:
+                self._sleep(self.retry.delay(attempt - 1))
+            try:
+                response = self._client.request(method, path, json=json)
+            except httpx.TransportError as exc:
+                last = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+                continue
+            if response.status_code >= 500:
+                field, rule, detail = _error_details(response)
+                last = f"HTTP {response.status_code}" + (f" ({rule})" if rule else "") + f": {detail}"
+                continue
+            if response.status_code >= 400:
+                field, rule, detail = _error_details(response)
+                raise RequestRejected(self.name, url, response.status_code, field, rule, detail)
+            return response
+        raise ServiceUnavailable(self.name, url, f"{self.name} at {self.base_url} is unreachable or failing: "
+                                                 f"{method} {url} failed {self.retry.attempts} times; last: {last}")
+
+    def wait_ready(self, timeout: float = 60.0, path: str = "/readyz", poll: float = 0.2) -> None:
+        """Poll ``path`` until it answers 200 (503 and connection errors mean: not yet)."""
+        url = self.base_url + path
+        deadline = time.monotonic() + timeout
+        last = "no answer yet"
+        while True:
+            try:
+                response = self._client.get(path, timeout=min(5.0, max(0.5, timeout)))
+                if response.status_code == 200:
+                    return
+                _, rule, detail = _error_details(response)
+                last = f"HTTP {response.status_code}" + (f" ({rule})" if rule else "") + f": {detail}"
+            except httpx.TransportError as exc:
+                last = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+            if time.monotonic() + poll > deadline:
+                raise ServiceUnavailable(self.name, url, f"{self.name} at {self.base_url} is not ready after "
+                                                         f"{timeout:g} s (GET {url}); last: {last}")
+            self._sleep(poll)
+
+    def close(self) -> None:
+        self._client.close()

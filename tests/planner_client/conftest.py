@@ -1,0 +1,93 @@
+"""Shared fixtures: a real sim worker launched on loopback, and a scripted loopback HTTP stub.
+
+The launcher fixture is session-wide (a sim worker takes a few seconds to start); tests that kill
+the worker leave it restarted, so every test reads ``launcher.sim_url`` when it needs it.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from dataclasses import dataclass, field
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+import pytest
+
+from planner_client.launcher import Launcher
+
+
+@pytest.fixture(scope="session")
+def launcher(tmp_path_factory):
+    with Launcher(tmp_path_factory.mktemp("run"), ready_timeout=120) as services:
+        yield services
+
+
+@dataclass
+class Seen:
+    method: str
+    path: str
+    headers: dict
+    body: object
+    at: float
+
+
+@dataclass
+class StubServer:
+    """A loopback HTTP server answering from a script of ``(status, json_body)``; the last entry
+    repeats. It records every request it sees, so tests can count retries and read what was sent.
+    This is a transport stub for testing the clients' retry behaviour, not a model of any service."""
+
+    script: list[tuple[int, object]]
+    seen: list[Seen] = field(default_factory=list)
+    server: ThreadingHTTPServer | None = None
+
+    @property
+    def url(self) -> str:
+        host, port = self.server.server_address[:2]
+        return f"http://{host}:{port}"
+
+    def start(self, port: int = 0) -> "StubServer":
+        stub = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def _answer(self) -> None:
+                length = int(self.headers.get("content-length") or 0)
+                raw = self.rfile.read(length) if length else b""
+                stub.seen.append(Seen(self.command, self.path, dict(self.headers),
+                                      json.loads(raw) if raw else None, time.monotonic()))
+                status, body = stub.script[min(len(stub.seen), len(stub.script)) - 1]
+                data = json.dumps(body).encode()
+                self.send_response(status)
+                self.send_header("content-type", "application/json")
+                self.send_header("content-length", str(len(data)))
+                self.end_headers()
+                self.wfile.write(data)
+
+            do_GET = do_POST = do_DELETE = _answer
+
+            def log_message(self, *args) -> None:
+                pass
+
+        self.server = ThreadingHTTPServer(("127.0.0.1", port), Handler)
+        threading.Thread(target=self.server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True).start()
+        return self
+
+    def stop(self) -> None:
+        if self.server is not None:
+            self.server.shutdown()
+            self.server.server_close()
+
+
+@pytest.fixture
+def stub():
+    """``stub(script)`` starts a scripted loopback server; all are stopped after the test."""
+    servers: list[StubServer] = []
+
+    def make(script: list[tuple[int, object]], port: int = 0) -> StubServer:
+        servers.append(StubServer(list(script)).start(port))
+        return servers[-1]
+
+    yield make
+    for s in servers:
+        s.stop()

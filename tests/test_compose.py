@@ -1,0 +1,112 @@
+"""docker-compose.yml and the Dockerfiles, checked without a Docker engine.
+
+``docker-compose config`` (Debian's v1 package, installed by the Makefile) validates the file
+against the Compose schema when the binary exists; the structural checks below run everywhere and
+pin what the schema cannot: health checks on /readyz, start order on health, non-root users, the
+planner behind a profile, torch only in the service image, and install steps the README shows.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+COMPOSE = ROOT / "docker-compose.yml"
+DOCKERFILES = {"service": "docker/service.Dockerfile", "sim_worker": "docker/sim_worker.Dockerfile",
+               "planner": "docker/planner.Dockerfile"}
+GL_LIBS = "libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libosmesa6"
+
+
+@pytest.fixture(scope="module")
+def compose() -> dict:
+    return yaml.safe_load(COMPOSE.read_text())
+
+
+def _dockerfile(name: str) -> str:
+    return (ROOT / DOCKERFILES[name]).read_text()
+
+
+def _run_steps(name: str) -> list[str]:
+    """The Dockerfile's RUN instructions, continuation lines joined."""
+    joined = re.sub(r"\\\n\s*", " ", _dockerfile(name))
+    return [line[4:] for line in joined.splitlines() if line.startswith("RUN ")]
+
+
+@pytest.mark.skipif(shutil.which("docker-compose") is None, reason="docker-compose (v1) is not installed "
+                    "(`make system-deps` installs it on Debian as root)")
+def test_docker_compose_config_accepts_the_file():
+    out = subprocess.run(["docker-compose", "-f", str(COMPOSE), "config", "-q"], capture_output=True, text=True,
+                         cwd=ROOT, timeout=60)
+    assert out.returncode == 0, out.stderr
+
+
+def test_services_build_from_the_dockerfiles(compose):
+    assert set(compose["services"]) == set(DOCKERFILES)
+    for name, service in compose["services"].items():
+        assert service["build"] == {"context": ".", "dockerfile": DOCKERFILES[name]}
+        assert (ROOT / DOCKERFILES[name]).is_file()
+
+
+@pytest.mark.parametrize("name", ["service", "sim_worker"])
+def test_servers_are_healthy_only_when_ready(compose, name):
+    service = compose["services"][name]
+    port = service["command"][service["command"].index("--port") + 1]
+    test = " ".join(service["healthcheck"]["test"])
+    assert service["healthcheck"]["test"][0] == "CMD"
+    assert f"http://127.0.0.1:{port}/readyz" in test
+    assert "start_period" in service["healthcheck"] and "profiles" not in service
+
+
+def test_planner_waits_for_healthy_services_and_is_behind_a_profile(compose):
+    planner = compose["services"]["planner"]
+    assert planner["profiles"] == ["planner"]
+    assert planner["depends_on"] == {"service": {"condition": "service_healthy"},
+                                     "sim_worker": {"condition": "service_healthy"}}
+    env = planner["environment"]
+    ports = {n: compose["services"][n]["command"][compose["services"][n]["command"].index("--port") + 1]
+             for n in ("service", "sim_worker")}
+    assert env["FIRP_PLANNER_SIM_URL"] == f"http://sim_worker:{ports['sim_worker']}"
+    assert env["FIRP_PLANNER_SERVICE_URL"] == f"http://service:{ports['service']}"
+    # `docker compose run planner run --trials 50`: the image's entry point is the planner CLI
+    assert re.search(r'^ENTRYPOINT \["python", "-m", "planner_client"\]$', _dockerfile("planner"), re.M)
+    assert planner["command"][0] == "run"
+
+
+@pytest.mark.parametrize("name", list(DOCKERFILES))
+def test_images_are_slim_and_run_as_a_non_root_user(compose, name):
+    text = _dockerfile(name)
+    assert re.search(r"^FROM python:3\.11-slim\b", text, re.M)
+    users = re.findall(r"^USER (\S+)", text, re.M)
+    assert users and users[-1] not in ("root", "0", "0:0")
+    user = str(compose["services"][name].get("user", users[-1]))
+    assert user.split(":")[0] not in ("root", "0")
+
+
+@pytest.mark.parametrize("name,extra", [("service", "service"), ("sim_worker", "sim"), ("planner", "planner")])
+def test_images_install_like_the_readme(name, extra):
+    steps = " && ".join(_run_steps(name))
+    readme = (ROOT / "README.md").read_text()
+    install = f'pip install -e ".[{extra}]"'
+    assert install in steps and install in readme
+    assert ("torch" in steps) == (name == "service")  # torch only where it is used
+    if name == "service":
+        cpu_torch = "pip install --index-url https://download.pytorch.org/whl/cpu torch==2.13.0"
+        assert cpu_torch in steps and cpu_torch in readme
+
+
+@pytest.mark.parametrize("name", ["sim_worker", "planner"])
+def test_mujoco_images_have_the_gl_libraries_and_egl(compose, name):
+    assert any(GL_LIBS in step for step in _run_steps(name))
+    assert re.search(r"MUJOCO_GL=egl", _dockerfile(name))
+    assert compose["services"][name]["environment"]["MUJOCO_GL"] == "egl"
+
+
+def test_makefile_installs_docker_compose_for_ci():
+    apt = re.search(r"^APT_PACKAGES := (.*)$", (ROOT / "Makefile").read_text(), re.M).group(1).split()
+    assert "docker-compose" in apt and set(GL_LIBS.split()) <= set(apt)
