@@ -179,16 +179,21 @@ class EnsembleScorer:
     def n_members(self) -> int:
         return len(self.models)
 
-    def _check_inputs(self, image: np.ndarray, plans: object) -> tuple[np.ndarray, np.ndarray]:
+    def _check_image(self, image: np.ndarray) -> np.ndarray:
         if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 or image.shape[-1] != 3:
             desc = f"{image.dtype} {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
             raise ValueError(f"image must be a uint8 numpy array (H, W, 3), got {desc}")
+        return image
+
+    def _check_plans(self, plans: object) -> np.ndarray:
         arr = plans if isinstance(plans, np.ndarray) else np.asarray(plans)
         if arr.ndim != 3 or arr.shape[0] == 0:
             raise PlanValidationError("plans", "shape", f"must be a non-empty (N, T, {PLAN_WIDTH}) array, "
                                       f"got shape {arr.shape}")
-        checked = np.stack([validate_plan(p, self.t_range, field=f"plans[{i}]") for i, p in enumerate(arr)])
-        return image, checked
+        return np.stack([validate_plan(p, self.t_range, field=f"plans[{i}]") for i, p in enumerate(arr)])
+
+    def _check_inputs(self, image: np.ndarray, plans: object) -> tuple[np.ndarray, np.ndarray]:
+        return self._check_image(image), self._check_plans(plans)
 
     def uses_vmap(self, n_plans: int) -> bool:
         """Whether a call with ``n_plans`` plans runs the members with vmap."""
@@ -217,11 +222,32 @@ class EnsembleScorer:
         Raises :class:`~firp.contract.PlanValidationError` (from the contract's validator, field
         ``plans[i]...``) for the first plan that breaks the contract or the bundle's T range.
         """
-        image, checked = self._check_inputs(image, plans)
+        image, checked = self._check_inputs(image, plans)  # everything checked before any compute
+        return self._score_checked(self.image_features(image), checked)
+
+    def image_features(self, image: np.ndarray) -> Tensor:
+        """Backbone features ``(1, backbone_dim)`` of one uint8 ``(H, W, 3)`` image.
+
+        :meth:`score` = :meth:`score_features` of these. Split out so that a caller scoring several
+        plan sets for the same scene (a planner ranking and re-ranking candidates; the scoring
+        service's feature cache) can run the backbone once instead of once per call.
+        """
+        image = self._check_image(image)
+        with torch.inference_mode():
+            return self.encoder.backbone_features(image[None])
+
+    def score_features(self, features: Tensor, plans: np.ndarray) -> EnsembleResult:
+        """Like :meth:`score`, from the :meth:`image_features` of the scene instead of its image."""
+        dim = self.encoder.backbone_dim
+        if not isinstance(features, Tensor) or tuple(features.shape) != (1, dim):
+            desc = tuple(features.shape) if isinstance(features, Tensor) else type(features).__name__
+            raise ValueError(f"features must be a (1, {dim}) tensor from image_features, got {desc}")
+        return self._score_checked(features, self._check_plans(plans))
+
+    def _score_checked(self, features: Tensor, checked: np.ndarray) -> EnsembleResult:
         N = checked.shape[0]
         with torch.inference_mode():
-            feats = self.encoder.backbone_features(image[None])  # (1, Db): the backbone, once
-            feats = feats.expand(N, -1)
+            feats = features.expand(N, -1)  # the backbone ran once, for the one image
             actions = torch.from_numpy(checked).to(torch.float32)
             logits, weights = self._run_members(feats, actions)
             member_probs = torch.sigmoid(logits.double())  # (M, N)

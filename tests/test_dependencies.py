@@ -32,3 +32,8 @@ def test_contract_and_episodes_import_neither_torch_nor_mujoco():
 ])
 def test_sim_worker_and_planner_never_import_torch(modules):
     assert "torch" not in _heavy_modules_after_importing(modules)
+
+
+def test_service_never_imports_mujoco():
+    modules = ["service.app", "service.v2", "service.__main__"]
+    assert "mujoco" not in _heavy_modules_after_importing(modules)

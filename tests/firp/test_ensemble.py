@@ -116,6 +116,21 @@ def test_the_image_goes_through_the_backbone_once(exported, strategy):
         handle.remove()
 
 
+
+def test_cached_features_score_like_the_image(exported):
+    """score = score_features(image_features(image)): a caller may keep the features of a scene."""
+    scorer = EnsembleScorer(exported[2])
+    image, plans = random_image(seed=3), valid_plans(3, 9, seed=4)
+    feats = scorer.image_features(image)
+    assert feats.shape == (1, TINY.encoder.backbone_dim)
+    direct, cached = scorer.score(image, plans), scorer.score_features(feats, plans)
+    np.testing.assert_array_equal(direct.probabilities, cached.probabilities)
+    np.testing.assert_array_equal(direct.weights, cached.weights)
+    with pytest.raises(ValueError, match="features must be a"):
+        scorer.score_features(feats.expand(2, -1), plans)
+    with pytest.raises(PlanValidationError):
+        scorer.score_features(feats, plans[:, :, :15])
+
 def test_plans_of_different_lengths_in_separate_calls(exported):
     scorer = EnsembleScorer(exported[2])
     for t in T_RANGE:

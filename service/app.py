@@ -1,0 +1,226 @@
+"""The FastAPI app: lifespan (load, verify, warm up the bundle), health, and the /v1 scoring routes.
+
+Why the bundle is loaded in the lifespan and not lazily: a service that starts with a missing,
+corrupt or incompatible bundle must fail at start-up with the file and the rule named
+(:class:`firp.bundle.BundleError`), not answer its first request with a 500. Readiness (``/readyz``)
+turns true only after a warm-up inference, so a load balancer never routes a planner's first call
+to a cold model.
+
+Layout of a request: :class:`~service.metrics.MetricsMiddleware` (outermost: counts everything,
+also refusals) -> :class:`~service.guard.RequestGuard` (415/413 before any parsing) -> FastAPI
+(pydantic parsing; 422s converted to the one error shape by :mod:`service.errors`) -> route ->
+:func:`service.deps.score_off_loop` (worker thread, one inference at a time).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
+import anyio.to_thread
+from fastapi import APIRouter, Depends, FastAPI, Request
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import JSONResponse, Response
+
+from firp.bundle import BundleError
+from service.deps import (
+    check_batch_size,
+    check_task,
+    image_digest,
+    ready_model,
+    require_api_key,
+    score_off_loop,
+    settings_of,
+)
+from service.errors import error_responses, install_error_handlers
+from service.guard import RequestGuard
+from service.images import ImageLimits, decode_base64_image
+from service.metrics import MetricsMiddleware, ServiceMetrics
+from service.schemas import (
+    BatchScoreRequest,
+    BatchScoreResponse,
+    HealthResponse,
+    ModelInfo,
+    ModelRef,
+    PlanResult,
+    ReadyResponse,
+    ScoreRequest,
+    ScoreResponse,
+)
+from service.scorer import ModelScores, ServiceModel, set_torch_threads
+from service.settings import ServiceSettings
+from service.v2 import v2_router
+
+__all__ = ["StartupError", "create_app"]
+
+log = logging.getLogger("service")
+
+API_TITLE = "FIRP plan scoring service"
+API_VERSION = "1.0.0"
+
+
+class StartupError(RuntimeError):
+    """The service cannot start: the message says which bundle and why."""
+
+
+_POST_ERRORS = error_responses(401, 413, 415, 422, 503)
+_GET_ERRORS = error_responses(401, 503)
+
+
+@asynccontextmanager
+async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
+    settings: ServiceSettings = app.state.settings
+    metrics: ServiceMetrics = app.state.metrics
+    set_torch_threads(settings.threads)
+    path = settings.bundle_dir
+    log.info("loading bundle %s", path)
+    try:
+        model = await anyio.to_thread.run_sync(ServiceModel.load, path, settings.feature_cache_size)
+    except BundleError as exc:
+        log.error("cannot start: %s", exc)
+        raise StartupError(f"cannot load the bundle at {path}: {exc}") from exc
+    if settings.task is not None and settings.task != model.task:
+        raise StartupError(f"the bundle at {path} is for task {model.task!r}, but task {settings.task!r} was asked for")
+    warmup_ms = await anyio.to_thread.run_sync(model.warm_up)
+    app.state.model = model
+    app.state.phase = "ready"
+    metrics.model_info.labels(model.name, model.version, model.task).set(1)
+    metrics.ready.set(1)
+    log.info("ready: bundle %s version %s (task %s, %d members, T in [%d, %d]), warm-up %.0f ms", model.name,
+             model.version, model.task, model.n_members, model.t_min, model.t_max, warmup_ms)
+    try:
+        yield
+    finally:
+        app.state.phase = "stopping"
+        metrics.ready.set(0)
+
+
+def _model_ref(model: ServiceModel) -> ModelRef:
+    return ModelRef(name=model.name, version=model.version)
+
+
+def _plan_result(scores: ModelScores, i: int) -> dict[str, object]:
+    return {
+        "score": float(scores.probabilities[i]),
+        "success": bool(scores.success[i]),
+        "member_scores": scores.member_probabilities[i].tolist(),
+        "spread": float(scores.spread[i]),
+        "failure_step": scores.failure_steps[i],
+    }
+
+
+def _guarded(settings: ServiceSettings) -> list[Any]:
+    """The API key dependency, only when a key is configured: so the OpenAPI schema says whether
+    the routes need X-API-Key, truthfully."""
+    return [Depends(require_api_key)] if settings.api_key is not None else []
+
+
+def _v1_router(guarded: list[Any]) -> APIRouter:
+    router = APIRouter(prefix="/v1", tags=["scoring"], dependencies=guarded)
+
+    async def run(request: Request, endpoint: str, image: str, task: str | None, plans: list[Any],
+                  fields: list[str]) -> tuple[ServiceModel, ModelScores]:
+        """Both routes: ready model, task check, then image + plans scored off the event loop."""
+        model = ready_model(request)
+        check_task(task, model)
+        limits = ImageLimits.from_settings(settings_of(request))
+        key = image_digest(b"b64", image.encode("utf-8", "surrogatepass"))
+        scores = await score_off_loop(request, model, endpoint, key, lambda: decode_base64_image(image, limits),
+                                      plans, fields)
+        return model, scores
+
+    @router.post("/score", response_model=ScoreResponse, responses=_POST_ERRORS,
+                 summary="Score one plan for one initial image")
+    async def score(body: ScoreRequest, request: Request) -> ScoreResponse:
+        start = time.perf_counter()
+        model, scores = await run(request, "/v1/score", body.image, body.task, [body.plan], ["plan"])
+        attention = scores.attention[0]
+        return ScoreResponse(
+            **_plan_result(scores, 0),
+            threshold=scores.threshold,
+            attention=None if attention is None else attention.tolist(),
+            model=_model_ref(model),
+            request_id=body.request_id,
+            elapsed_ms=(time.perf_counter() - start) * 1000.0,
+        )
+
+    @router.post("/score/batch", response_model=BatchScoreResponse, responses=_POST_ERRORS,
+                 summary="Score N candidate plans for one initial image in one call")
+    async def score_batch(body: BatchScoreRequest, request: Request) -> BatchScoreResponse:
+        start = time.perf_counter()
+        check_batch_size(len(body.plans), settings_of(request).max_batch, "plans")
+        fields = [f"plans[{i}]" for i in range(len(body.plans))]
+        model, scores = await run(request, "/v1/score/batch", body.image, body.task, body.plans, fields)
+        return BatchScoreResponse(
+            results=[PlanResult(**_plan_result(scores, i)) for i in range(len(body.plans))],
+            threshold=scores.threshold,
+            model=_model_ref(model),
+            request_id=body.request_id,
+            elapsed_ms=(time.perf_counter() - start) * 1000.0,
+        )
+
+    @router.get("/model", response_model=ModelInfo, responses=_GET_ERRORS,
+                summary="The loaded bundle: version, members, metrics, training data, contract, image size")
+    async def model_info(request: Request) -> ModelInfo:
+        return ModelInfo(**ready_model(request).manifest_summary())
+
+    return router
+
+
+def _health_router() -> APIRouter:
+    router = APIRouter(tags=["operations"])
+
+    @router.get("/healthz", response_model=HealthResponse, summary="The process is alive")
+    async def healthz() -> HealthResponse:
+        return HealthResponse()
+
+    @router.get("/readyz", response_model=ReadyResponse,
+                responses={503: {"model": ReadyResponse, "description": "starting or stopping"}},
+                summary="The bundle is loaded and warmed up (200) or not (503)")
+    async def readyz(request: Request) -> Response:
+        state = request.app.state
+        if state.phase != "ready":
+            return JSONResponse(ReadyResponse(status=state.phase).model_dump(), status_code=503)
+        return JSONResponse(ReadyResponse(status="ready", model=_model_ref(state.model),
+                                          warmup_ms=state.model.warmup_ms).model_dump())
+
+    @router.get("/metrics", response_class=Response, summary="Prometheus metrics (text exposition format)",
+                responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}})
+    async def metrics(request: Request) -> Response:
+        body, content_type = request.app.state.metrics.render()
+        return Response(body, media_type=content_type)
+
+    return router
+
+
+def create_app(settings: ServiceSettings | None = None) -> FastAPI:
+    """Build the app. Nothing is loaded until the lifespan starts (uvicorn, TestClient, ...)."""
+    settings = settings if settings is not None else ServiceSettings()
+    app = FastAPI(
+        title=API_TITLE,
+        version=API_VERSION,
+        description=(
+            "Scores how likely a robot action plan is to succeed, before it is executed, with an ensemble bundle "
+            "of FIRP models. Every error is {\"error\": {\"field\", \"rule\", \"message\"}}."
+        ),
+        lifespan=_lifespan,
+    )
+    app.state.settings = settings
+    app.state.metrics = ServiceMetrics()
+    app.state.model = None
+    app.state.phase = "starting"
+    install_error_handlers(app)
+    routers = [_health_router(), _v1_router(_guarded(settings)), v2_router(_guarded(settings))]
+    for router in routers:
+        app.include_router(router)
+    # add_middleware wraps: the last added runs first.
+    routes = [r for router in routers for r in router.routes]
+    app.add_middleware(RequestGuard, max_body_bytes=settings.max_body_bytes, routes=routes)
+    if settings.cors_origins:
+        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["GET", "POST"],
+                           allow_headers=["Content-Type", "X-API-Key"])
+    app.add_middleware(MetricsMiddleware, metrics=app.state.metrics, routes=routes)
+    return app

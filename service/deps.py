@@ -1,0 +1,94 @@
+"""What every model route needs, shared by the /v1 routes (service.app) and the V2 routes (service.v2):
+the loaded model (or a 503), the optional API key, the task check, and scoring off the event loop.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+from collections.abc import Callable, Sequence
+
+import numpy as np
+from fastapi import Request, Security
+from fastapi.security import APIKeyHeader
+
+from service.errors import ServiceError
+from service.metrics import ServiceMetrics
+from service.scorer import ModelScores, ServiceModel
+from service.settings import ServiceSettings
+
+__all__ = ["API_KEY_HEADER", "check_batch_size", "check_task", "image_digest", "metrics_of", "ready_model",
+           "require_api_key", "score_off_loop", "settings_of"]
+
+API_KEY_HEADER = "X-API-Key"
+
+_api_key_scheme = APIKeyHeader(
+    name=API_KEY_HEADER, auto_error=False,
+    description="Needed on /v1 and /v2 model routes only when the service was started with FIRP_SERVICE_API_KEY.",
+)
+
+
+def settings_of(request: Request) -> ServiceSettings:
+    return request.app.state.settings
+
+
+def metrics_of(request: Request) -> ServiceMetrics:
+    return request.app.state.metrics
+
+
+async def require_api_key(request: Request, key: str | None = Security(_api_key_scheme)) -> None:
+    """401 unless the configured API key is sent (no key configured: everyone may call).
+
+    Compared in constant time, so response timing does not leak how much of a guess was right.
+    """
+    expected = settings_of(request).api_key
+    if expected is None:
+        return
+    if key is None or not hmac.compare_digest(key.encode("utf-8", "surrogatepass"),
+                                              expected.get_secret_value().encode("utf-8", "surrogatepass")):
+        raise ServiceError(401, API_KEY_HEADER, "api_key", f"missing or wrong {API_KEY_HEADER} header",
+                           headers={"WWW-Authenticate": "ApiKey"})
+
+
+def ready_model(request: Request) -> ServiceModel:
+    """The loaded, warmed-up model, or a 503 (``not_ready``) while starting or stopping."""
+    model = getattr(request.app.state, "model", None)
+    if model is None or request.app.state.phase != "ready":
+        raise ServiceError(503, None, "not_ready", f"the model is not ready ({request.app.state.phase})",
+                           headers={"Retry-After": "1"})
+    return model
+
+
+def check_task(task: str | None, model: ServiceModel) -> None:
+    if task is not None and task != model.task:
+        raise ServiceError(422, "task", "task_mismatch",
+                           f"this service scores plans for task {model.task!r}, not {task!r}")
+
+
+def check_batch_size(n: int, limit: int, field: str) -> None:
+    if not 1 <= n <= limit:
+        raise ServiceError(422, field, "batch_size", f"between 1 and {limit} plans per call, got {n}")
+
+
+def image_digest(kind: bytes, *parts: bytes) -> bytes:
+    """The feature cache's key: what the image bytes were (base64 text, or shape + pixels)."""
+    h = hashlib.sha256(kind)
+    for p in parts:
+        h.update(len(p).to_bytes(8, "little"))
+        h.update(p)
+    return h.digest()
+
+
+async def score_off_loop(request: Request, model: ServiceModel, endpoint: str, image_key: bytes,
+                         load_image: Callable[[], np.ndarray], plans: Sequence[object],
+                         fields: Sequence[str]) -> ModelScores:
+    """Validate the plans, decode the image if its features are not cached, score: all in the
+    model's worker thread (one at a time), then record the inference metrics."""
+
+    def work() -> ModelScores:
+        checked = model.validate_plans(plans, fields)
+        return model.score(image_key, load_image, checked)
+
+    scores = await model.run(work)
+    metrics_of(request).observe_inference(endpoint, scores.inference_s, len(plans), scores.cache_hit)
+    return scores
