@@ -1,62 +1,76 @@
 """``python -m planner_client run --trials 50``: the product's main job.
 
-Today it runs the TAMP-style planner against the embedded simulator and reports TAMP alone and the
-oracle line; FIRP scoring and replanning are added when the scoring service lands (see README).
+Per trial: a new episode; the TAMP planner's plan is scored by the FIRP scoring service and the
+planner replans with the next block order while the score is below the threshold, up to
+--max-iterations plans; the accepted (or last) plan is executed in the simulator. TAMP alone (the
+first plan, unscored) and the oracle line (the first block order that succeeds in simulation) run
+on the same episodes. At the end: the success-rate tables, also written beside --out as
+<out>.summary.md / .summary.json / .summary.png.
+
+With no --service / --sim, both services are launched on loopback for the run (logs in
+<out dir>/logs/); the service loads --bundle or the bundle shipped for the task.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
 from pathlib import Path
 
-from firp.cli import int_in_range
+from firp.cli import int_in_range, non_negative_float
+from firp.contract import DEFAULT_T, T_MAX, T_MIN
+
+EXIT_USAGE, EXIT_SERVICE, EXIT_INTERRUPTED = 2, 3, 130
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m planner_client", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m planner_client", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="run planning trials end to end")
     run.add_argument("--trials", type=int_in_range("--trials", 1, 100_000), default=50)
     run.add_argument("--task", choices=("stacking", "replacement"), default="stacking")
     run.add_argument("--seed", type=int, default=100_000, help="trial i uses scene seed SEED + i")
     run.add_argument("--max-iterations", type=int_in_range("--max-iterations", 1, 6), default=6,
-                     help="block orders tried per trial at most (the replanning budget)")
+                     help="plans scored per trial at most, one per block order (the replanning budget; also the "
+                          "oracle's)")
+    run.add_argument("--threshold", type=non_negative_float("--threshold"), default=None,
+                     help="accept a plan when its score is >= this (default: the service's threshold)")
+    run.add_argument("--horizon", type=int_in_range("--horizon", T_MIN, T_MAX), default=DEFAULT_T,
+                     help=f"plan length T in steps at 4 FPS (default {DEFAULT_T}); must be in the bundle's T range")
     run.add_argument("--no-oracle", action="store_true", help="skip the oracle line (faster)")
+    run.add_argument("--no-score", action="store_true",
+                     help="debugging: TAMP alone and the oracle line only, no scoring service")
     run.add_argument("--out", type=Path, default=None,
                      help="JSONL of trial records (default: a new runs/<task>-<time>.jsonl)")
-    run.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
+    run.add_argument("--resume", action="store_true", help="continue an interrupted run in --out (same settings)")
     run.add_argument("--sim", default=os.environ.get("FIRP_PLANNER_SIM_URL") or None, metavar="URL",
-                     help="sim worker to execute on (env FIRP_PLANNER_SIM_URL); default: the embedded simulator")
+                     help="running sim worker (env FIRP_PLANNER_SIM_URL); default: launch one for the run")
     run.add_argument("--service", default=os.environ.get("FIRP_PLANNER_SERVICE_URL") or None, metavar="URL",
-                     help="scoring service (env FIRP_PLANNER_SERVICE_URL); checked for readiness only until "
-                          "FIRP scoring joins the loop")
+                     help="running scoring service (env FIRP_PLANNER_SERVICE_URL); default: launch one for the run")
+    run.add_argument("--bundle", type=Path, default=None,
+                     help="bundle the launched service loads (default: firp/bundles/<task> in the firp package)")
+    run.add_argument("--api-key", default=os.environ.get("FIRP_PLANNER_API_KEY") or None,
+                     help="X-API-Key for the scoring service (env FIRP_PLANNER_API_KEY)")
     run.add_argument("--ready-timeout", type=int_in_range("--ready-timeout", 1, 3600), default=120,
-                     help="seconds to wait for --sim / --service to be ready")
+                     help="seconds to wait for the services to be ready")
     return parser
 
 
-def open_backends(args: argparse.Namespace):
-    """The simulator backend (remote if ``--sim``, else embedded), after checking that the services
-    the run was pointed at are ready -- a wrong URL fails here, naming it, not mid-run."""
-    from planner_client.clients import ScoreClient, SimClient
-    from planner_client.embedded import EmbeddedSim
-
-    if args.service:
-        with ScoreClient(args.service) as scorer:
-            scorer.wait_ready(args.ready_timeout)
-    if not args.sim:
-        return EmbeddedSim()
-    sim = SimClient(args.sim)
-    try:
-        sim.wait_ready(args.ready_timeout)
-    except BaseException:
-        sim.close()
-        raise
-    return sim
+def _postfix(records: list[dict]) -> dict[str, str]:
+    """Running success rates for the progress bar."""
+    n = len(records)
+    post = {"tamp": f"{sum(r['tamp_success'] for r in records) / n:.2f}"}
+    scored = [r for r in records if "firp_success" in r]
+    if scored:
+        post["firp"] = f"{sum(r['firp_success'] for r in scored) / len(scored):.2f}"
+        post["accepted"] = f"{sum(r['firp_accepted'] for r in scored)}/{len(scored)}"
+    with_oracle = [r for r in records if "oracle_success" in r]
+    if with_oracle:
+        post["oracle"] = f"{sum(r['oracle_success'] for r in with_oracle) / len(with_oracle):.2f}"
+    return post
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -64,45 +78,71 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.resume and args.out is None:
         parser.error("--resume needs --out: the run file to continue")
+    if args.bundle is not None and args.service and not args.no_score:
+        parser.error("--bundle is for the scoring service this run launches; with --service the running service "
+                     "has loaded its own bundle")
     os.environ.setdefault("MUJOCO_GL", "egl")
     from tqdm import tqdm
 
-    from planner_client.loop import RunConfig, read_records, run_trials, summarise
-    from planner_client.tamp import TampPlanner
+    from planner_client.bundles import MissingBundle
+    from planner_client.loop import RunConfig, RunSetupError, check_resumable, read_records, run_identity, run_trials
+    from planner_client.processes import ServerStartError
+    from planner_client.report import markdown, summarise, write_report
+    from planner_client.session import ServicePlan, open_services
+    from planner_client.tamp import PlannerConfig, TampPlanner
     from planner_client.transport import ServiceError
 
     out = args.out or Path(f"runs/{args.task}-{time.strftime('%Y%m%d-%H%M%S')}.jsonl")
+    if out.exists() and not args.resume:
+        parser.error(f"--out {out} exists; pass --resume to continue it or choose another file")
     config = RunConfig(task=args.task, trials=args.trials, seed=args.seed, max_iterations=args.max_iterations,
-                       oracle=not args.no_oracle, out=out, resume=args.resume)
+                       oracle=not args.no_oracle, out=out, resume=args.resume, threshold=args.threshold)
+    plan = ServicePlan(task=args.task, out_dir=out.parent, sim_url=args.sim, service_url=args.service,
+                       bundle=args.bundle, score=not args.no_score, api_key=args.api_key,
+                       ready_timeout=args.ready_timeout)
     try:
-        sim = open_backends(args)
-    except ServiceError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 3
+        plan.bundle_to_launch()
+    except MissingBundle as exc:
+        parser.error(str(exc))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    planner = TampPlanner(PlannerConfig(horizon=args.horizon))
+    records = [r for r in read_records(out) if r["trial"] < args.trials] if args.resume else []
+    if records:  # refuse other settings now, not after launching the services (the model is checked later)
+        flags = {**run_identity(config, planner, None), "scoring": not args.no_score}
+        try:
+            check_resumable(read_records(out), flags, out, ignore=("model",))
+        except RunSetupError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return EXIT_USAGE
     try:
-        done = len(read_records(out)) if args.resume else 0
-        planner = TampPlanner()
-        bar = tqdm(total=args.trials, initial=min(done, args.trials), desc=f"{args.task} trials", unit="trial")
-        for record in run_trials(config, sim, planner):
-            bar.update(1)
-            bar.set_postfix(tamp="ok" if record["tamp_success"] else "fail")
-        bar.close()
-    except FileExistsError as exc:
+        with open_services(plan) as services:
+            bar = tqdm(total=args.trials, initial=len(records), desc=f"{args.task} trials", unit="trial")
+            try:
+                for record in run_trials(config, services.sim, planner, services.scorer):
+                    records.append(record)
+                    bar.set_postfix(_postfix(records), refresh=False)
+                    bar.update(1)
+            finally:
+                bar.close()
+            if services.sim_restarts:
+                print(f"the sim worker was restarted {services.sim_restarts} time(s); no trial was lost",
+                      file=sys.stderr)
+    except (FileExistsError, RunSetupError) as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except ServiceError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 3
-    finally:
-        sim.close()
+        return EXIT_USAGE
+    except (ServiceError, ServerStartError) as exc:
+        print(f"error: {exc}\n{len(records)} trial(s) are in {out}; continue with --resume --out {out}",
+              file=sys.stderr)
+        return EXIT_SERVICE
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: {len(records)} trial(s) are in {out}; continue with --resume --out {out}",
+              file=sys.stderr)
+        return EXIT_INTERRUPTED
     summary = summarise([r for r in read_records(out) if r["trial"] < args.trials])
-    print(f"\n{args.task}: {summary['trials']} trials")
-    print(f"  TAMP alone          success rate {summary['tamp_success_rate']:.3f}")
-    if "oracle_success_rate" in summary:
-        print(f"  oracle (any of {args.max_iterations} orders, checked in simulation) {summary['oracle_success_rate']:.3f}")
-    print("  TAMP + FIRP         not available yet: the scoring service is not built (see README)")
-    print(json.dumps(summary))
+    paths = write_report(summary, out)
+    print("\n" + markdown(summary))
     print(f"trial records: {out}")
+    print("summary: " + ", ".join(str(p) for p in paths.values()))
     return 0
 
 

@@ -145,6 +145,11 @@ class ScoreClient:
                                f"scoring service at {self.base_url} answered without {missing}: {str(answer)[:300]}")
         return answer
 
+    def model(self) -> dict:
+        """``GET /v1/model``: name, version, task, threshold, contract T range, ... of the loaded bundle.
+        The trial loop reads it once per run, to check plans fit the bundle and to tie records to a model."""
+        return self.http.request("GET", "/v1/model").json()
+
     def close(self) -> None:
         self.http.close()
 

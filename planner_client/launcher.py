@@ -2,7 +2,9 @@
 
 ``with Launcher(out_dir, bundle=...) as services:`` starts both on free loopback ports (in parallel),
 waits for their ``/readyz``, and gives ``services.service_url`` / ``services.sim_url``; leaving the
-block stops them (SIGTERM, then SIGKILL). Their logs go to ``<out_dir>/logs/``.
+block stops them (SIGTERM, then SIGKILL). Their logs go to ``<out_dir>/logs/``. A run pointed at an
+already running sim worker launches only the service (``sim=False``); one pointed at a running
+service launches only the sim worker (no ``bundle``).
 
 A long run must not lose trials to a crashed sim worker. ``services.sim()`` returns a
 :class:`RestartingSim`: a simulator backend that, when the worker is unreachable or failing after
@@ -30,19 +32,24 @@ R = TypeVar("R")
 
 
 class Launcher:
-    """Runs the sim worker and, when a bundle is given, the scoring service, until :meth:`stop`."""
+    """Runs the sim worker (unless ``sim=False``) and, when a bundle is given, the scoring service,
+    until :meth:`stop`."""
 
-    def __init__(self, out_dir: Path, bundle: Path | None = None, *, ready_timeout: float = 180.0,
+    def __init__(self, out_dir: Path, bundle: Path | None = None, *, sim: bool = True, ready_timeout: float = 180.0,
                  stop_timeout: float = 10.0, sim_args: Sequence[str] = (), service_args: Sequence[str] = (),
                  env: Mapping[str, str] | None = None):
+        if not sim and bundle is None:
+            raise ValueError("nothing to launch: no sim worker (sim=False) and no bundle for the scoring service")
         log_dir = Path(out_dir) / "logs"
         common = {"ready_timeout": ready_timeout, "stop_timeout": stop_timeout,
                   "env": {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), **(env or {})}}
-        self.sim_server = ManagedServer(
-            "sim_worker",
-            lambda port: [sys.executable, "-m", "sim_worker", "serve", "--host", "127.0.0.1", "--port", str(port),
-                          *sim_args],
-            log_dir, **common)
+        self._sim_server: ManagedServer | None = None
+        if sim:
+            self._sim_server = ManagedServer(
+                "sim_worker",
+                lambda port: [sys.executable, "-m", "sim_worker", "serve", "--host", "127.0.0.1", "--port",
+                              str(port), *sim_args],
+                log_dir, **common)
         self.service_server: ManagedServer | None = None
         if bundle is not None:
             self.service_server = ManagedServer(
@@ -52,8 +59,18 @@ class Launcher:
                 log_dir, **common)
 
     @property
+    def sim_server(self) -> ManagedServer:
+        if self._sim_server is None:
+            raise RuntimeError("no sim worker: the launcher was started with sim=False")
+        return self._sim_server
+
+    @property
+    def runs_sim(self) -> bool:
+        return self._sim_server is not None
+
+    @property
     def servers(self) -> list[ManagedServer]:
-        return [s for s in (self.service_server, self.sim_server) if s is not None]
+        return [s for s in (self.service_server, self._sim_server) if s is not None]
 
     # -- lifecycle ------------------------------------------------------------------------------
     def start(self) -> "Launcher":
@@ -159,6 +176,13 @@ class RestartingSim:
 
     def execute(self, episode: RemoteEpisode, plan: np.ndarray, record_frames: bool = False) -> RemoteOutcome:
         return self._call(lambda c: c.execute(episode, plan, record_frames))
+
+    def delete(self, episode: RemoteEpisode) -> None:
+        """Free the episode on the worker; a worker that died meanwhile has forgotten it anyway."""
+        try:
+            self.client.delete(episode)
+        except ServiceUnavailable:
+            pass
 
     def close(self) -> None:
         self.client.close()

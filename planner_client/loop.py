@@ -1,21 +1,34 @@
-"""The trial loop: per trial a new episode, the planner's first plan, execution, and the oracle line.
+"""The trial loop: per trial a new episode, replanning until FIRP accepts a plan, execution, baselines.
 
-Scoring with FIRP (and replanning while the score is below the threshold) joins this loop when the
-scoring service exists; until then each trial records the TAMP-alone outcome and the oracle: the
-first block order, in the replanning loop's order, whose plan succeeds when executed in the
-simulator (the ceiling of any replanning over block orders). Records are appended to a JSONL file
-as each trial ends, so an interrupted run resumes without repeating or losing trials.
+One trial (scene seed ``seed + trial``):
+
+1. **TAMP + FIRP** -- plan with the first block order of :func:`block_orders`, score the plan with
+   the scoring service; while the score is below the threshold and fewer than ``max_iterations``
+   plans were scored, replan with the next block order and score again. The accepted plan -- or,
+   when the budget ran out, the *last* one scored, as the paper does -- is executed in the simulator.
+2. **TAMP alone** -- the planner's first plan, executed without scoring, on the same episode.
+3. **Oracle** -- the first block order (same order, same budget) whose plan succeeds when executed:
+   the ceiling of replanning over block orders within this budget.
+
+Every execution starts from the episode's initial state and the simulator is deterministic, so a
+plan is planned and executed at most once per trial and the three lines share executions (the
+record says how many were really run). Records are appended to a JSONL file as each trial ends;
+each carries the run's identity (task, seed, threshold setting, budget, horizon, model), so an
+interrupted run resumes without repeating or losing trials and a file is never continued with
+different settings.
 """
 
 from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Protocol
 
-from planner_client.backend import SimBackend
+import numpy as np
+
+from planner_client.backend import SimBackend, SimOutcome
 from planner_client.tamp import TampPlanner, block_orders
 
 
@@ -28,6 +41,23 @@ class RunConfig:
     oracle: bool = True
     out: Path = Path("runs/run.jsonl")
     resume: bool = False
+    threshold: float | None = None  # None: the service's own threshold (each answer carries it)
+
+
+class Scorer(Protocol):
+    """What the loop needs of the scoring service (:class:`planner_client.clients.ScoreClient`)."""
+
+    def score(self, image_b64: str, plan: np.ndarray, task: str) -> dict: ...
+
+    def model(self) -> dict: ...
+
+
+class RunSetupError(ValueError):
+    """The run cannot start as asked (settings that contradict the service or the run file)."""
+
+
+class ResumeMismatch(RunSetupError):
+    """The run file was written by a run with other settings; continuing it would mix two runs."""
 
 
 def read_records(path: Path) -> list[dict]:
@@ -43,48 +73,162 @@ def read_records(path: Path) -> list[dict]:
     return records
 
 
-def run_trials(config: RunConfig, sim: SimBackend[Any], planner: TampPlanner) -> Iterator[dict]:
-    """Run the pending trials, appending one JSON line per finished trial; yields each record."""
-    config.out.parent.mkdir(parents=True, exist_ok=True)
+def run_identity(config: RunConfig, planner: TampPlanner, model: dict | None) -> dict:
+    """What must not change between the parts of one run (``trials`` may grow: that extends it)."""
+    identity = {
+        "task": config.task, "seed": config.seed, "max_iterations": config.max_iterations,
+        "threshold": config.threshold, "horizon": planner.config.horizon, "oracle": config.oracle,
+        "scoring": model is not None,
+        "model": None if model is None else {"name": model.get("name"), "version": model.get("version")},
+    }
+    return json.loads(json.dumps(identity))  # as it reads back from the file
+
+
+def check_resumable(records: list[dict], identity: dict, out: Path, ignore: tuple[str, ...] = ()) -> None:
+    """Refuse to continue ``out`` if any record was written with different settings (keys in
+    ``ignore`` are not compared: the CLI checks its flags before the service tells the model)."""
+    identity = {k: v for k, v in identity.items() if k not in ignore}
+    for record in records:
+        theirs = record.get("run")
+        if theirs is not None:
+            theirs = {k: v for k, v in theirs.items() if k not in ignore}
+        if theirs == identity:
+            continue
+        if theirs is None:
+            raise ResumeMismatch(f"--out {out}: trial {record.get('trial')} was written without the run's settings "
+                                 "(an older version of the loop); start a new run with another --out")
+        diff = ", ".join(f"{k}: file {theirs.get(k)!r}, now {identity.get(k)!r}"
+                         for k in sorted(set(theirs) | set(identity)) if theirs.get(k) != identity.get(k))
+        raise ResumeMismatch(f"--out {out} was written with other settings ({diff}); resume with the same settings "
+                             "or choose another --out")
+
+
+def check_model(model: dict, config: RunConfig, planner: TampPlanner) -> None:
+    """A bundle for another task, or plans outside its T range, would be rejected at every call:
+    fail before the first trial."""
+    if model.get("task") not in (None, config.task):
+        raise RunSetupError(f"--task {config.task}: the scoring service's bundle {model.get('name')!r} is for task "
+                            f"{model.get('task')!r}")
+    contract = model.get("contract") or {}
+    t_min, t_max = contract.get("t_min"), contract.get("t_max")
+    horizon = planner.config.horizon
+    if t_min is not None and t_max is not None and not t_min <= horizon <= t_max:
+        raise RunSetupError(f"--horizon {horizon}: the scoring service's bundle {model.get('name')!r} accepts plans of "
+                            f"T in [{t_min}, {t_max}] only; pass --horizon in that range or use another bundle")
+
+
+@dataclass
+class TrialWork:
+    """One trial's plans and executions, each made at most once, with the time each kind took."""
+
+    sim: SimBackend[Any]
+    planner: TampPlanner
+    episode: Any
+    plans: dict[tuple[str, ...], np.ndarray] = field(default_factory=dict)
+    outcomes: dict[tuple[str, ...], SimOutcome] = field(default_factory=dict)
+    timing: dict[str, float] = field(default_factory=lambda: {"start_s": 0.0, "plan_s": 0.0, "score_s": 0.0,
+                                                              "execute_s": 0.0})
+
+    def plan(self, order: tuple[str, ...]) -> np.ndarray:
+        if order not in self.plans:
+            started = time.perf_counter()
+            self.plans[order] = self.planner.plan(self.episode.task, self.episode.observation, order).actions
+            self.timing["plan_s"] += time.perf_counter() - started
+        return self.plans[order]
+
+    def execute(self, order: tuple[str, ...]) -> SimOutcome:
+        """The outcome of ``order``'s plan; executed once -- the simulator is deterministic from the
+        episode's initial state, so a second execution would give the same label."""
+        if order not in self.outcomes:
+            plan = self.plan(order)
+            started = time.perf_counter()
+            self.outcomes[order] = self.sim.execute(self.episode, plan)
+            self.timing["execute_s"] += time.perf_counter() - started
+        return self.outcomes[order]
+
+
+def replan_until_accepted(work: TrialWork, scorer: Scorer, orders: list[tuple[str, ...]],
+                          threshold: float | None) -> dict:
+    """Score plans in ``orders`` until one reaches the threshold; the FIRP part of the record."""
+    scores: list[float] = []
+    accepted = False
+    answer: dict = {}
+    used_threshold = float("nan")
+    order = orders[0]
+    for order in orders:
+        plan = work.plan(order)
+        started = time.perf_counter()
+        answer = scorer.score(work.episode.image_b64, plan, work.episode.task)
+        work.timing["score_s"] += time.perf_counter() - started
+        used_threshold = float(answer["threshold"]) if threshold is None else threshold
+        scores.append(float(answer["score"]))
+        if scores[-1] >= used_threshold:
+            accepted = True
+            break
+    outcome = work.execute(order)  # the accepted plan, or the last one when the budget ran out
+    return {"firp_success": bool(outcome.success), "firp_reason": outcome.reason, "firp_accepted": accepted,
+            "firp_iterations": len(scores), "firp_order": list(order), "scores": scores,
+            "threshold": used_threshold, "service_threshold": float(answer["threshold"])}
+
+
+def oracle_line(work: TrialWork, orders: list[tuple[str, ...]]) -> dict:
+    """The first order whose plan succeeds in simulation (executions already made are reused)."""
+    for examined, order in enumerate(orders, start=1):
+        if work.execute(order).success:
+            return {"oracle_success": True, "oracle_order": list(order), "oracle_executions": examined}
+    return {"oracle_success": False, "oracle_order": None, "oracle_executions": len(orders)}
+
+
+def run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: TampPlanner, scorer: Scorer | None,
+              identity: dict) -> dict:
+    """One trial's record (see the module docstring for what is run)."""
+    started = time.perf_counter()
+    seed = config.seed + trial
+    orders = block_orders()[: config.max_iterations]
+    episode = sim.start(config.task, seed)
+    work = TrialWork(sim, planner, episode)
+    work.timing["start_s"] = time.perf_counter() - started
+    record: dict = {"trial": trial, "seed": seed, "task": config.task, "run": identity}
+    if scorer is not None:
+        record.update(replan_until_accepted(work, scorer, orders, config.threshold))
+    tamp = work.execute(orders[0])
+    record.update(tamp_success=bool(tamp.success), tamp_reason=tamp.reason)
+    if scorer is not None:
+        # same plan, same initial state, deterministic simulator: TAMP alone reuses FIRP's execution
+        record["tamp_reused_firp_execution"] = record["firp_order"] == list(orders[0])
+    if config.oracle:
+        record.update(oracle_line(work, orders))
+    record["executions"] = len(work.outcomes)
+    delete = getattr(sim, "delete", None)  # a sim worker keeps episodes until they expire: free it now
+    if delete is not None:
+        delete(episode)
+    record.update({k: round(v, 4) for k, v in work.timing.items() if scorer is not None or k != "score_s"})
+    record["seconds"] = round(time.perf_counter() - started, 3)
+    return record
+
+
+def run_trials(config: RunConfig, sim: SimBackend[Any], planner: TampPlanner,
+               scorer: Scorer | None = None) -> Iterator[dict]:
+    """Run the pending trials, appending one JSON line per finished trial; yields each record.
+
+    Without a scorer only TAMP alone and the oracle line are run (``--no-score``)."""
+    model = scorer.model() if scorer is not None else None
+    identity = run_identity(config, planner, model)
     if config.out.exists() and not config.resume:
         raise FileExistsError(f"--out: {config.out} exists; pass --resume to continue it or choose another file")
     records = read_records(config.out)
+    check_resumable(records, identity, config.out)
+    if model is not None:
+        check_model(model, config, planner)
+    config.out.parent.mkdir(parents=True, exist_ok=True)
     done = {r["trial"] for r in records}
     # rewrite without a torn tail so appends start on a clean line
     config.out.write_text("".join(json.dumps(r) + "\n" for r in records))
-    orders = block_orders()[: config.max_iterations]
     with config.out.open("a") as sink:
         for trial in range(config.trials):
             if trial in done:
                 continue
-            started = time.perf_counter()
-            seed = config.seed + trial
-            episode = sim.start(config.task, seed)
-            first = planner.plan(config.task, episode.observation, orders[0])
-            outcome = sim.execute(episode, first.actions)
-            record = {"trial": trial, "seed": seed, "task": config.task,
-                      "tamp_success": outcome.success, "tamp_reason": outcome.reason}
-            if config.oracle:
-                oracle_order = list(orders[0]) if outcome.success else None
-                tried = 1
-                for order in orders[1:]:
-                    if oracle_order is not None:
-                        break
-                    tried += 1
-                    if sim.execute(episode, planner.plan(config.task, episode.observation, order).actions).success:
-                        oracle_order = list(order)
-                record.update(oracle_success=oracle_order is not None, oracle_order=oracle_order,
-                              oracle_executions=tried)
-            record["seconds"] = round(time.perf_counter() - started, 3)
+            record = run_trial(trial, config, sim, planner, scorer, identity)
             sink.write(json.dumps(record) + "\n")
             sink.flush()
             yield record
-
-
-def summarise(records: list[dict]) -> dict:
-    n = len(records)
-    out = {"trials": n, "tamp_success_rate": sum(r["tamp_success"] for r in records) / n if n else float("nan")}
-    with_oracle = [r for r in records if "oracle_success" in r]
-    if with_oracle:
-        out["oracle_success_rate"] = sum(r["oracle_success"] for r in with_oracle) / len(with_oracle)
-    return out

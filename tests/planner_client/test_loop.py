@@ -1,21 +1,58 @@
-"""The trial loop against the real embedded simulator: records, oracle, resume without double counting."""
+"""The trial loop with real parts: the embedded simulator or a launched sim worker, and the scoring
+service launched on loopback with a tiny random bundle (it scores ~0.45 for every plan, so the
+threshold is set to force each path: 0.0 accepts the first plan, 1.01 never accepts).
+
+Also: resume without double counting and refusing other settings, the report's numbers against
+hand-computed records, the CLI end to end with both services launched, and its missing-bundle error.
+"""
+
+from __future__ import annotations
 
 import json
+import os
+import signal
+import subprocess
+import sys
 
 import pytest
 
+from planner_client.__main__ import main
 from planner_client.embedded import EmbeddedSim
-from planner_client.loop import RunConfig, read_records, run_trials, summarise
-from planner_client.tamp import PlannerConfig, TampPlanner
+from planner_client.launcher import Launcher
+from planner_client.loop import ResumeMismatch, RunConfig, RunSetupError, read_records, run_trials
+from planner_client.report import markdown, summarise, summary_paths, write_report
+from planner_client.tamp import PlannerConfig, TampPlanner, block_orders
+from planner_client.transport import RetryPolicy
+
+T = 16  # inside the tiny bundle's T range (8, 16)
+FAST = RetryPolicy(attempts=3, base_delay=0.05)
+ORDERS = [list(o) for o in block_orders()]
 
 
 @pytest.fixture(scope="module")
 def sim_and_planner():
     sim = EmbeddedSim()
-    yield sim, TampPlanner(PlannerConfig(horizon=32))
+    yield sim, TampPlanner(PlannerConfig(horizon=T))
     sim.close()
 
 
+@pytest.fixture(scope="module")
+def tiny_bundle(tmp_path_factory):
+    from tests.firp.bundle_helpers import export_tiny
+
+    return export_tiny(tmp_path_factory.mktemp("bundle") / "tiny")
+
+
+@pytest.fixture(scope="module")
+def scorer(tiny_bundle, tmp_path_factory):
+    """The real scoring service as a subprocess (only the service: ``sim=False``)."""
+    with Launcher(tmp_path_factory.mktemp("service"), bundle=tiny_bundle, sim=False, ready_timeout=120) as services:
+        assert not services.runs_sim
+        with services.score_client() as client:
+            yield client
+
+
+# -- without scoring (--no-score): TAMP alone and the oracle -------------------------------------------
 def test_records_are_written_as_trials_end_and_resume_skips_them(tmp_path, sim_and_planner):
     sim, planner = sim_and_planner
     out = tmp_path / "run.jsonl"
@@ -23,7 +60,7 @@ def test_records_are_written_as_trials_end_and_resume_skips_them(tmp_path, sim_a
     assert [r["trial"] for r in first] == [0, 1]
     assert len(read_records(out)) == 2
     for r in first:
-        assert r["tamp_success"] in (True, False) and "oracle_success" in r
+        assert r["tamp_success"] in (True, False) and "oracle_success" in r and "firp_success" not in r
         # the oracle can only be at least as good as the first plan
         assert r["oracle_success"] or not r["tamp_success"]
     # a torn last line (killed mid-write) is dropped, and the run continues after the good records
@@ -43,3 +80,214 @@ def test_existing_output_needs_resume(tmp_path, sim_and_planner):
     out.write_text("")
     with pytest.raises(FileExistsError, match="--resume"):
         list(run_trials(RunConfig(trials=1, out=out), sim, planner))
+
+
+# -- TAMP + FIRP ---------------------------------------------------------------------------------------
+def test_threshold_zero_accepts_the_first_plan_and_tamp_reuses_its_execution(tmp_path, sim_and_planner, scorer):
+    sim, planner = sim_and_planner
+    records = list(run_trials(RunConfig(trials=2, out=tmp_path / "r.jsonl", max_iterations=3, threshold=0.0),
+                              sim, planner, scorer))
+    for r in records:
+        assert r["firp_accepted"] is True and r["firp_iterations"] == 1 and len(r["scores"]) == 1
+        assert r["firp_order"] == ORDERS[0] and r["threshold"] == 0.0 and r["service_threshold"] == 0.5
+        assert 0.0 <= r["scores"][0] <= 1.0
+        # TAMP alone executed the very same plan: one execution, one label
+        assert r["tamp_reused_firp_execution"] is True
+        assert (r["tamp_success"], r["tamp_reason"]) == (r["firp_success"], r["firp_reason"])
+        assert r["run"]["model"]["name"] == "tiny" and r["run"]["threshold"] == 0.0
+        assert all(r[k] >= 0 for k in ("plan_s", "score_s", "execute_s", "seconds"))
+        assert r["executions"] <= 3  # the oracle reused the first execution
+
+
+def test_unreachable_threshold_replans_to_the_budget_and_executes_the_last_plan(tmp_path, sim_and_planner, scorer):
+    sim, planner = sim_and_planner
+    budget = 3
+    [r] = run_trials(RunConfig(trials=1, out=tmp_path / "r.jsonl", max_iterations=budget, threshold=1.01),
+                     sim, planner, scorer)
+    assert r["firp_accepted"] is False and r["firp_iterations"] == budget and len(r["scores"]) == budget
+    assert r["firp_order"] == ORDERS[budget - 1] and r["tamp_reused_firp_execution"] is False
+    # what was scored and executed is exactly the last order's plan: redo it by hand and compare
+    episode = sim.start("stacking", r["seed"])
+    for k in range(budget):
+        plan = planner.plan("stacking", episode.observation, block_orders()[k]).actions
+        assert scorer.score(episode.image_b64, plan, "stacking")["score"] == pytest.approx(r["scores"][k], abs=1e-6)
+    last = sim.execute(episode, planner.plan("stacking", episode.observation, block_orders()[budget - 1]).actions)
+    first = sim.execute(episode, planner.plan("stacking", episode.observation, block_orders()[0]).actions)
+    assert (r["firp_success"], r["firp_reason"]) == (last.success, last.reason)
+    assert (r["tamp_success"], r["tamp_reason"]) == (first.success, first.reason)
+    assert r["executions"] == budget  # FIRP's last plan, TAMP's first, the oracle's middle one
+
+
+def test_service_threshold_is_used_when_none_is_given(tmp_path, sim_and_planner, scorer):
+    sim, planner = sim_and_planner
+    [r] = run_trials(RunConfig(trials=1, out=tmp_path / "r.jsonl", max_iterations=2, oracle=False),
+                     sim, planner, scorer)
+    assert r["threshold"] == 0.5 and r["run"]["threshold"] is None and "oracle_success" not in r
+    # stop at the first score >= threshold, else at the budget
+    assert all(s < 0.5 for s in r["scores"][:-1])
+    assert r["firp_accepted"] == (r["scores"][-1] >= 0.5)
+    assert r["firp_iterations"] == 2 or r["firp_accepted"]
+
+
+def test_a_horizon_outside_the_bundles_range_fails_before_any_trial(tmp_path, sim_and_planner, scorer):
+    sim, _ = sim_and_planner
+    out = tmp_path / "r.jsonl"
+    with pytest.raises(RunSetupError, match=r"--horizon 32.*\[8, 16\]"):
+        list(run_trials(RunConfig(trials=1, out=out), sim, TampPlanner(PlannerConfig(horizon=32)), scorer))
+    assert not out.exists()
+
+
+# -- resume --------------------------------------------------------------------------------------------
+def test_an_interrupted_run_resumes_without_repeating_or_losing_trials(tmp_path, sim_and_planner, scorer):
+    sim, planner = sim_and_planner
+    out = tmp_path / "run.jsonl"
+    config = RunConfig(trials=3, out=out, max_iterations=2, threshold=0.0)
+    trials = run_trials(config, sim, planner, scorer)
+    assert next(trials)["trial"] == 0
+    trials.close()  # interrupted after one trial (as Ctrl-C between trials)...
+    with out.open("a") as f:
+        f.write('{"trial": 1, "seed": 1000')  # ...or killed while writing the next record
+    resumed = list(run_trials(RunConfig(trials=3, out=out, max_iterations=2, threshold=0.0, resume=True),
+                              sim, planner, scorer))
+    assert [r["trial"] for r in resumed] == [1, 2]
+    records = read_records(out)
+    assert sorted(r["trial"] for r in records) == [0, 1, 2]
+    assert summarise(records)["all_trials"]["tamp_firp"]["trials"] == 3
+    # nothing left to do: resuming again runs no trial
+    assert list(run_trials(RunConfig(trials=3, out=out, max_iterations=2, threshold=0.0, resume=True),
+                           sim, planner, scorer)) == []
+
+
+@pytest.mark.parametrize("change", [{"threshold": 0.3}, {"max_iterations": 3}, {"seed": 7}, {"task": "replacement"},
+                                    {"scorer": None}])
+def test_resume_refuses_a_file_written_with_other_settings(tmp_path, sim_and_planner, scorer, change):
+    sim, planner = sim_and_planner
+    out = tmp_path / "run.jsonl"
+    list(run_trials(RunConfig(trials=1, out=out, max_iterations=2, threshold=0.0), sim, planner, scorer))
+    before = out.read_text()
+    settings = {"trials": 2, "out": out, "max_iterations": 2, "threshold": 0.0, "resume": True, **change}
+    use_scorer = settings.pop("scorer", scorer)
+    with pytest.raises(ResumeMismatch, match="other settings") as err:
+        list(run_trials(RunConfig(**settings), sim, planner, use_scorer))
+    key = next(iter(change)).replace("scorer", "scoring")
+    assert f"{key}: file" in str(err.value)
+    assert out.read_text() == before
+
+
+# -- the report ----------------------------------------------------------------------------------------
+def _record(trial, tamp, firp, accepted, oracle, iterations=1, threshold=0.5):
+    return {"trial": trial, "task": "stacking", "tamp_success": tamp, "firp_success": firp, "firp_accepted": accepted,
+            "firp_iterations": iterations, "threshold": threshold, "oracle_success": oracle, "plan_s": 0.1,
+            "score_s": 0.2, "execute_s": 0.3, "seconds": 1.0,
+            "run": {"task": "stacking", "seed": 10, "max_iterations": 6, "threshold": None, "horizon": 120,
+                    "oracle": True, "scoring": True, "model": {"name": "m", "version": "v"}}}
+
+
+def test_summary_tables_match_hand_computed_rates(tmp_path):
+    records = [
+        _record(0, tamp=True, firp=True, accepted=True, oracle=True),
+        _record(1, tamp=False, firp=True, accepted=True, oracle=True, iterations=3),
+        _record(2, tamp=False, firp=False, accepted=False, oracle=True, iterations=6),
+        _record(3, tamp=False, firp=False, accepted=True, oracle=False, iterations=2),
+        _record(4, tamp=True, firp=False, accepted=False, oracle=True, iterations=6),
+    ]
+    s = summarise(records)
+    every = s["all_trials"]
+    assert (every["tamp"]["successes"], every["tamp"]["trials"], every["tamp"]["rate"]) == (2, 5, 0.4)
+    assert (every["tamp_firp"]["successes"], every["tamp_firp"]["rate"]) == (2, 0.4)
+    assert (every["oracle"]["successes"], every["oracle"]["rate"]) == (4, 0.8)
+    acc = s["accepted_trials"]  # trials 0, 1, 3
+    assert (acc["accepted"], acc["of"]) == (3, 5)
+    assert (acc["tamp"]["successes"], acc["tamp"]["trials"]) == (1, 3)
+    assert (acc["tamp_firp"]["successes"], acc["tamp_firp"]["rate"]) == (2, pytest.approx(2 / 3))
+    assert (acc["oracle"]["successes"], acc["oracle"]["rate"]) == (2, pytest.approx(2 / 3))
+    assert s["firp_mean_iterations"] == pytest.approx(18 / 5)
+    assert s["mean_timing_s"]["score_s"] == pytest.approx(0.2)
+
+    text = markdown(s)
+    assert "| TAMP alone | 2/5 | 40.0% |" in text and "| TAMP + FIRP | 2/5 | 40.0% |" in text
+    assert "| oracle (first of 6 block orders that succeeds in simulation) | 4/5 | 80.0% |" in text
+    assert "accepted a plan in 3 of 5 trials" in text and "| TAMP + FIRP | 2/3 | 66.7% |" in text
+
+    out = tmp_path / "run.jsonl"
+    paths = write_report(s, out)
+    assert paths == summary_paths(out)
+    assert [p.name for p in paths.values()] == ["run.summary.md", "run.summary.json", "run.summary.png"]
+    assert json.loads(paths["json"].read_text()) == json.loads(json.dumps(s))
+    assert paths["md"].read_text() == text
+    assert paths["png"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_summary_without_scoring_or_accepted_trials():
+    s = summarise([{k: v for k, v in _record(0, True, False, False, True).items()
+                    if not k.startswith("firp") and k != "threshold"}])
+    assert s["accepted_trials"] is None and s["all_trials"]["tamp_firp"] is None
+    assert "| TAMP + FIRP | not run | n/a |" in markdown(s)
+    none_accepted = summarise([_record(0, True, False, False, True)])
+    assert none_accepted["accepted_trials"]["tamp_firp"] == {"successes": 0, "trials": 0, "rate": None}
+    assert "| TAMP + FIRP | 0/0 | n/a |" in markdown(none_accepted)
+
+
+# -- a killed sim worker mid-run -----------------------------------------------------------------------
+def test_a_sim_worker_killed_mid_run_loses_no_trial(tmp_path, launcher, scorer):
+    sim = launcher.sim(retry=FAST)
+    planner = TampPlanner(PlannerConfig(horizon=T))
+    restarts = launcher.sim_restarts
+    seen = []
+    try:
+        for record in run_trials(RunConfig(trials=3, out=tmp_path / "r.jsonl", max_iterations=2, threshold=0.0),
+                                 sim, planner, scorer):
+            seen.append(record["trial"])
+            if len(seen) == 1:
+                process = launcher.sim_server.process
+                os.kill(process.pid, signal.SIGKILL)
+                process.wait(10)
+    finally:
+        sim.close()
+    assert seen == [0, 1, 2] and [r["trial"] for r in read_records(tmp_path / "r.jsonl")] == [0, 1, 2]
+    assert launcher.sim_restarts == restarts + 1
+
+
+# -- the CLI -------------------------------------------------------------------------------------------
+def test_cli_launches_both_services_runs_and_writes_the_report(tmp_path, tiny_bundle, capsys):
+    out = tmp_path / "runs" / "run.jsonl"
+    code = main(["run", "--trials", "2", "--horizon", str(T), "--max-iterations", "2", "--threshold", "1.01",
+                 "--bundle", str(tiny_bundle), "--out", str(out), "--seed", "5"])
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "## 1. Success rate over all trials" in printed and "accepted a plan in 0 of 2 trials" in printed
+    records = read_records(out)
+    assert [r["trial"] for r in records] == [0, 1] and [r["seed"] for r in records] == [5, 6]
+    assert all(r["firp_iterations"] == 2 and r["firp_order"] == ORDERS[1] for r in records)
+    for path in summary_paths(out).values():
+        assert path.exists()
+    assert {p.name for p in (out.parent / "logs").iterdir()} == {"service.log", "sim_worker.log"}
+    # a finished run resumed with other settings is refused, naming them
+    assert main(["run", "--trials", "2", "--horizon", str(T), "--max-iterations", "3", "--threshold", "1.01",
+                 "--bundle", str(tiny_bundle), "--out", str(out), "--seed", "5", "--resume"]) == 2
+    assert "max_iterations: file 2, now 3" in capsys.readouterr().err
+
+
+def test_cli_names_a_missing_bundle_and_how_to_make_one(tmp_path, capsys):
+    missing = tmp_path / "no-bundle"
+    out = tmp_path / "runs" / "run.jsonl"
+    with pytest.raises(SystemExit) as exit_:
+        main(["run", "--trials", "1", "--bundle", str(missing), "--out", str(out)])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert str(missing) in err and "does not exist" in err
+    assert "python -m firp.tune --data data/stacking.h5" in err and "--export firp/bundles/stacking" in err
+    # the shipped default is looked up inside the firp package (none ships for replacement)
+    with pytest.raises(SystemExit):
+        main(["run", "--trials", "1", "--task", "replacement", "--out", str(out)])
+    assert "firp/bundles/replacement" in capsys.readouterr().err
+    assert not out.parent.exists()  # nothing was launched or written
+
+
+def test_the_run_path_never_imports_torch():
+    code = ("import sys, planner_client.__main__, planner_client.loop, planner_client.report, "
+            "planner_client.session, planner_client.bundles, matplotlib.figure; "
+            "from planner_client.bundles import shipped_bundle_dir; shipped_bundle_dir('stacking'); "
+            "print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

@@ -1,0 +1,76 @@
+"""The services one run talks to: given by URL, or launched here on loopback for the run's duration.
+
+With no ``--sim`` / ``--service`` the run launches both (:class:`planner_client.launcher.Launcher`,
+logs beside the run file); given one URL, it launches only the other. A launched sim worker is
+used through :class:`RestartingSim`, so a worker killed mid-run is restarted and no trial is lost.
+Given URLs are checked for readiness first, so a wrong URL fails before anything is launched.
+"""
+
+from __future__ import annotations
+
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+from planner_client.bundles import require_bundle, shipped_bundle_dir
+from planner_client.clients import ScoreClient, SimClient
+from planner_client.launcher import Launcher
+
+
+@dataclass(frozen=True)
+class ServicePlan:
+    """What the run asked for (URLs may be None: launch that part)."""
+
+    task: str
+    out_dir: Path
+    sim_url: str | None = None
+    service_url: str | None = None
+    bundle: Path | None = None
+    score: bool = True
+    api_key: str | None = None
+    ready_timeout: float = 120.0
+
+    def bundle_to_launch(self) -> Path | None:
+        """The bundle the launched service loads, checked to exist; None if no service is launched.
+        Raises :class:`planner_client.bundles.MissingBundle` before anything starts."""
+        if not self.score or self.service_url is not None:
+            return None
+        return require_bundle(self.bundle or shipped_bundle_dir(self.task), self.task)
+
+
+@dataclass
+class Services:
+    sim: Any  # a planner_client.backend.SimBackend
+    scorer: ScoreClient | None
+    launcher: Launcher | None
+
+    @property
+    def sim_restarts(self) -> int:
+        if self.launcher is None or not self.launcher.runs_sim:
+            return 0
+        return self.launcher.sim_restarts
+
+
+@contextmanager
+def open_services(plan: ServicePlan) -> Iterator[Services]:
+    """Ready clients for the run; everything opened or launched here is closed/stopped on exit."""
+    bundle = plan.bundle_to_launch()
+    with ExitStack() as stack:
+        sim = scorer = None
+        if plan.sim_url:
+            sim = stack.enter_context(SimClient(plan.sim_url))
+            sim.wait_ready(plan.ready_timeout)
+        if plan.score and plan.service_url:
+            scorer = stack.enter_context(ScoreClient(plan.service_url, plan.api_key))
+            scorer.wait_ready(plan.ready_timeout)
+        launcher = None
+        if sim is None or bundle is not None:
+            launcher = stack.enter_context(Launcher(plan.out_dir, bundle=bundle, sim=sim is None,
+                                                    ready_timeout=plan.ready_timeout))
+        if sim is None:
+            sim = launcher.sim()
+            stack.callback(sim.close)
+        if bundle is not None:
+            scorer = stack.enter_context(launcher.score_client(plan.api_key))
+        yield Services(sim, scorer, launcher)
