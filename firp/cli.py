@@ -30,6 +30,40 @@ def non_negative_float(name: str) -> Callable[[str], float]:
     return _checked(name, float, "a number", lambda v: 0.0 <= v < float("inf"), ">= 0")
 
 
+def positive_float(name: str) -> Callable[[str], float]:
+    """Parse a float flag that must be finite and > 0."""
+    return _checked(name, float, "a number", lambda v: 0.0 < v < float("inf"), "> 0")
+
+
 def open_unit_fraction(name: str) -> Callable[[str], float]:
     """Parse a fraction flag that must lie strictly between 0 and 1."""
     return _checked(name, float, "a number", lambda v: 0.0 < v < 1.0, "in (0, 1)")
+
+
+#: The architecture this product trains and ships (the paper's values are the dataclass defaults):
+#: 4 plan steps per RSSM transition, 128-wide RSSM, a sharp attention head (L = 0.05). Measured on
+#: stacking: one FIRP training step 0.16 s instead of 1.5 s, and the head on real features learns
+#: (validation AUC 0.83 after 200 steps) where at L = 20 and 120 transitions it stayed near chance.
+PRODUCT_MODEL = {"action_chunk": 4, "deter_dim": 128, "hidden": 128, "head_temperature": 0.05}
+
+
+def add_model_flags(parser: argparse.ArgumentParser) -> None:
+    """The FIRP architecture flags shared by ``firp.tune`` and ``firp.evaluate``."""
+    g = parser.add_argument_group("model architecture (defaults: the shipped product's; paper: 1, 200, 200, 20)")
+    g.add_argument("--action-chunk", type=int_in_range("--action-chunk", 1, 64), default=PRODUCT_MODEL["action_chunk"],
+                   help="plan steps per RSSM transition")
+    g.add_argument("--deter-dim", type=int_in_range("--deter-dim", 1, 4096), default=PRODUCT_MODEL["deter_dim"],
+                   help="RSSM deterministic state size")
+    g.add_argument("--hidden", type=int_in_range("--hidden", 1, 4096), default=PRODUCT_MODEL["hidden"],
+                   help="width of the RSSM's two-layer MLPs")
+    g.add_argument("--head-temperature", type=positive_float("--head-temperature"),
+                   default=PRODUCT_MODEL["head_temperature"], help="attention temperature L of the success head")
+
+
+def model_config_from(args: argparse.Namespace, image_size: int):
+    """The :class:`~firp.model.config.FIRPConfig` the flags of :func:`add_model_flags` describe."""
+    from firp.model.config import EncoderConfig, FIRPConfig, HeadConfig, RSSMConfig
+
+    return FIRPConfig(encoder=EncoderConfig(image_size=image_size), action_chunk=args.action_chunk,
+                      rssm=RSSMConfig(deter_dim=args.deter_dim, hidden=args.hidden),
+                      head=HeadConfig(temperature=args.head_temperature))

@@ -22,11 +22,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from firp.cli import int_in_range
+from firp.cli import add_model_flags, int_in_range, model_config_from
 from firp.data import SequenceData, load_sequences, stratified_split
 from firp.features import DEFAULT_CACHE_DIR
 from firp.metrics import balanced_accuracy, choose_threshold
-from firp.model.config import EncoderConfig, FIRPConfig, HeadConfig
+
 from firp.train import TrainConfig, predict, train_model
 
 #: method name -> how it differs from the default training config
@@ -99,19 +99,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="backbone input size (84: the frames' own size, no resizing)")
     parser.add_argument("--out", type=Path, default=None, help="results directory (default runs/eval-<data stem>)")
     parser.add_argument("--cache-dir", type=Path, default=DEFAULT_CACHE_DIR, help="backbone feature cache")
-    parser.add_argument("--head-temperature", type=float, default=HeadConfig.temperature,
-                        help="attention temperature L of the success head (paper: 20)")
     parser.add_argument("--no-progress", action="store_true")
+    add_model_flags(parser)
     args = parser.parse_args(argv)
     if not args.data.exists():
         parser.error(f"--data: {args.data} does not exist (collect it with python -m sim_worker collect)")
     out = args.out or Path("runs") / f"eval-{args.data.stem}"
     out.mkdir(parents=True, exist_ok=True)
-    if not args.head_temperature > 0:
-        parser.error(f"--head-temperature must be > 0, got {args.head_temperature}")
-    base = TrainConfig(epochs=args.epochs, threads=args.threads,
-                       model=FIRPConfig(encoder=EncoderConfig(image_size=args.image_size),
-                                        head=HeadConfig(temperature=args.head_temperature)))
+    base = TrainConfig(epochs=args.epochs, threads=args.threads, model=model_config_from(args, args.image_size))
     torch.set_num_threads(args.threads)
     data = load_sequences(args.data, base.model.encoder, args.cache_dir, progress=not args.no_progress)
     rows = []
@@ -129,7 +124,8 @@ def main(argv: list[str] | None = None) -> int:
     table = summary_table(rows, args.methods)
     print(table)
     command = f"python -m firp.evaluate --data {args.data} --repeats {args.repeats} --methods {' '.join(args.methods)} " \
-              f"--epochs {args.epochs} --threads {args.threads} --head-temperature {args.head_temperature}"
+              f"--epochs {args.epochs} --threads {args.threads} --head-temperature {args.head_temperature} " \
+              f"--action-chunk {args.action_chunk} --deter-dim {args.deter_dim} --hidden {args.hidden}"
     (out / "results.json").write_text(json.dumps({
         "command": command, "dataset": str(args.data), "dataset_hash": data.dataset_hash,
         "machine": {"python": platform.python_version(), "torch": torch.__version__, "threads": args.threads},

@@ -282,7 +282,7 @@ def tcr(
 def firp_loss(out: Mapping[str, Any], actions: Tensor, labels: Tensor, cfg: LossConfig = LossConfig()) -> dict[str, Tensor]:
     """Eq. 9 + TCR from the dict of :meth:`firp.model.firp.FIRP.forward_train`.
 
-    ``total = L_ce + ce_open_loop * L_ce(open loop) + L_KL^1 + L_re^1
+    ``total = ce_real * L_ce + ce_open_loop * L_ce(open loop) + prediction * (L_KL^1 + L_re^1)
     + lambda * (L_KL^os + L_re^os) + alpha * R_TTC + beta * R_ATC`` where ``os`` averages the open
     loop from index 0 and the sampled distances in ``out["overshoot"]``. ``L_re^1`` compares
     ``e[:, 1:]`` with the decoded one-step priors (the paper decodes from s^_t). Returns every term
@@ -290,12 +290,13 @@ def firp_loss(out: Mapping[str, Any], actions: Tensor, labels: Tensor, cfg: Loss
     """
     mask = out.get("mask")
     e = out["e"]
+    target = out.get("e_target", e)  # (B, T, E) the prediction target (detached by default)
     terms: dict[str, Tensor] = {}
     terms["ce"] = classification_loss(out["logits"], labels, cfg.pos_weight)
     terms["ce_open_loop"] = classification_loss(out["logits_open_loop"], labels, cfg.pos_weight)
     terms["kl"] = kl_gaussian(out["post_mean"], out["post_std"], out["prior_mean"], out["prior_std"], mask, cfg.free_nats)
     m1 = mask[:, 1:] if mask is not None else None
-    terms["re"] = feature_reconstruction(e[:, 1:], out["feat_prior"][:, 1:], m1)
+    terms["re"] = feature_reconstruction(target[:, 1:], out["feat_prior"][:, 1:], m1)
 
     sets = [(out["open_loop"], 1)] + [(pred, pred["targets"]) for _, pred in sorted(out["overshoot"].items())]
     sets = [(p, s) for p, s in sets if p["prior_mean"].shape[1] > 0]
@@ -304,18 +305,16 @@ def firp_loss(out: Mapping[str, Any], actions: Tensor, labels: Tensor, cfg: Loss
         out["post_mean"], out["post_std"], [p["prior_mean"] for p, _ in sets], [p["prior_std"] for p, _ in sets],
         starts, mask, free_nats=cfg.free_nats,
     )
-    terms["re_overshoot"] = overshooting_reconstruction(e, [p["feat"] for p, _ in sets], starts, mask)
+    terms["re_overshoot"] = overshooting_reconstruction(target, [p["feat"] for p, _ in sets], starts, mask)
 
-    categories = plan_categories(actions)
+    categories = out["categories"] if "categories" in out else plan_categories(actions)  # aligned with e
     terms["ttc"] = ttc(e, mask) if cfg.alpha > 0 else e.new_zeros(())
     terms["atc"] = atc(e, categories, mask, cfg.atc_alignment) if cfg.beta > 0 else e.new_zeros(())
-    terms["total"] = (
-        terms["ce"]
-        + cfg.ce_open_loop * terms["ce_open_loop"]
-        + terms["kl"]
-        + terms["re"]
-        + cfg.overshooting * (terms["kl_overshoot"] + terms["re_overshoot"])
-        + cfg.alpha * terms["ttc"]
-        + cfg.beta * terms["atc"]
-    )
+    terms["total"] = sum(w * terms[k] for k, w in loss_weights(cfg).items())
     return terms
+
+
+def loss_weights(cfg: LossConfig) -> dict[str, float]:
+    """Weight of each term of :func:`firp_loss` in ``total``."""
+    return {"ce": cfg.ce_real, "ce_open_loop": cfg.ce_open_loop, "kl": cfg.prediction, "re": cfg.prediction,
+            "kl_overshoot": cfg.overshooting, "re_overshoot": cfg.overshooting, "ttc": cfg.alpha, "atc": cfg.beta}

@@ -23,7 +23,7 @@ from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
 from firp.data import SequenceData
-from firp.losses import classification_loss, firp_loss
+from firp.losses import classification_loss, firp_loss, loss_weights
 from firp.metrics import balanced_accuracy
 from firp.model.baselines import build_model
 from firp.model.config import FIRPConfig
@@ -101,15 +101,15 @@ def _loss(model: torch.nn.Module, cfg: TrainConfig, feats: torch.Tensor, actions
         loss = classification_loss(out["logits"], labels)
         return loss, {"ce": float(loss.detach())}
     future = epoch >= cfg.e_start_f
-    taus = sample_overshooting_distances(actions.shape[1], cfg.overshooting_n, cfg.overshooting_max_tau, gen) \
+    transitions = -(-actions.shape[1] // model.cfg.action_chunk)  # RSSM steps: ceil(T / k)
+    taus = sample_overshooting_distances(transitions, cfg.overshooting_n, cfg.overshooting_max_tau, gen) \
         if future and cfg.overshooting > 0 else []
     out = model.forward_train(feats, actions, overshooting_distances=taus, overshooting_stride=cfg.overshooting_stride)
     terms = firp_loss(out, actions, labels, model.cfg.loss)
     total = terms["total"]
     if not future:  # before E_start^f: classification from real features + TCR only
-        total = total - sum(model.cfg.loss.ce_open_loop * terms[k] if k == "ce_open_loop" else
-                            (model.cfg.loss.overshooting * terms[k] if "overshoot" in k else terms[k])
-                            for k in FUTURE_TERMS)
+        weights = loss_weights(model.cfg.loss)
+        total = total - sum(weights[k] * terms[k] for k in FUTURE_TERMS)
     return total, {k: float(v.detach()) for k, v in terms.items()}
 
 

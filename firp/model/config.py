@@ -150,18 +150,32 @@ class LossConfig:
     are mid-grid. ``ce_open_loop`` weights the classification of the open-loop *predicted*
     sequence (what inference classifies): our reading of the ``L_ce^tau`` term of eq. 9.
     ``free_nats`` (0 = off, as in the paper) is dreamer's floor on the per-step KL.
+
+    ``ce_real`` and ``prediction`` weight the classification of the real features and the one-step
+    prediction terms (both 1 in the paper); see ``firp.cli.PRODUCT_LOSS`` for what is shipped.
+
+    ``stop_target_gradient`` (default on) lets the RSSM read the projected features ``e_t`` without
+    back-propagating into the projection: the projection is trained by the classification loss on
+    real features and by TCR only. With it off, ``e_t`` is both trainable and the target of the
+    KL/reconstruction/overshooting terms, and a constant ``e_t`` drives all of those to zero -- on
+    the stacking data the features collapsed to a constant (std 0.008) and FIRP stayed at chance
+    (``docs/results/stacking_split0_preliminary.md``). Dreamer-style world models stop this
+    gradient for the same reason.
     """
 
     overshooting: float = 0.1  # lambda
     alpha: float = 0.01  # TTC
     beta: float = 0.01  # ATC
     ce_open_loop: float = 1.0
+    ce_real: float = 1.0  # L_ce on the real features' sequence
+    prediction: float = 1.0  # weight of the one-step terms L_KL^1 + L_re^1
     pos_weight: float | None = None  # BCE weight of the positive (success) class; None = 1
     free_nats: float = 0.0
     atc_alignment: Literal["cause", "paper"] = "cause"
+    stop_target_gradient: bool = True
 
     def __post_init__(self) -> None:
-        for name in ("overshooting", "alpha", "beta", "ce_open_loop", "free_nats"):
+        for name in ("overshooting", "alpha", "beta", "ce_open_loop", "ce_real", "prediction", "free_nats"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.pos_weight is not None:
@@ -172,7 +186,14 @@ class LossConfig:
 
 @dataclass(frozen=True)
 class FIRPConfig:
-    """The whole model: encoder projection + RSSM + head; ``action_dim`` is the plan width (16)."""
+    """The whole model: encoder projection + RSSM + head; ``action_dim`` is the plan width (16).
+
+    ``action_chunk`` = k plan steps per RSSM transition (1 = the paper: one transition per 0.25 s
+    step). With k > 1 the RSSM consumes k consecutive plan rows at once (a (k * 16)-wide action)
+    and observes the frame at the end of each chunk (the initial image for the first one), so a
+    T = 120 plan is 30 transitions: a quarter of the sequential work at training and inference, and
+    a four times shorter path for the classification gradient through the recurrence.
+    """
 
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     rssm: RSSMConfig = field(default_factory=RSSMConfig)
@@ -180,9 +201,11 @@ class FIRPConfig:
     baseline: BaselineConfig = field(default_factory=BaselineConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     action_dim: int = PLAN_WIDTH
+    action_chunk: int = 1
 
     def __post_init__(self) -> None:
         _positive("action_dim", self.action_dim)
+        _positive("action_chunk", self.action_chunk)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain nested dict (JSON-able) for manifests."""

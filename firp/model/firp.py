@@ -17,9 +17,10 @@ from firp.model.config import FIRPConfig
 from firp.model.encoder import FeatureProjection, ImageEncoder
 from firp.model.head import SuccessHead
 from firp.model.normalize import ActionNormalizer
+from firp.model.ops import plan_categories
 from firp.model.rssm import RSSM
 
-__all__ = ["FIRP", "Score", "first_step"]
+__all__ = ["FIRP", "Score", "chunk_actions", "chunk_frame_index", "first_step", "spread_chunk_weights"]
 
 
 class Score(NamedTuple):
@@ -28,6 +29,32 @@ class Score(NamedTuple):
     logits: Tensor  # (B,) success logit; sigmoid -> probability
     weights: Tensor | None  # (B, T) attention over time (sums to 1 over valid steps); None: no attention
     features: Tensor | None  # (B, T, E) the sequence the head read: [e_1, e^_2, ..., e^_T]
+
+
+def chunk_frame_index(T: int, k: int) -> list[int]:
+    """Frame observed by each of the ``ceil(T / k)`` chunks: the initial frame for the first chunk,
+    then the last frame of each chunk (clamped to ``T - 1`` for a padded last chunk)."""
+    n = -(-T // k)
+    return [0] + [min((j + 1) * k - 1, T - 1) for j in range(1, n)]
+
+
+def chunk_actions(actions: Tensor, k: int) -> Tensor:
+    """``(B, T, A)`` -> ``(B, ceil(T / k), k * A)``; a short last chunk repeats the last row (a hold)."""
+    if k == 1:
+        return actions
+    B, T, A = actions.shape
+    pad = (-T) % k
+    if pad:
+        actions = torch.cat([actions, actions[:, -1:].expand(B, pad, A)], dim=1)
+    return actions.reshape(B, (T + pad) // k, k * A)
+
+
+def spread_chunk_weights(weights: Tensor, T: int, k: int) -> Tensor:
+    """Chunk attention ``(B, Tc)`` -> per plan step ``(B, T)``, each chunk's weight on its frame step."""
+    if k == 1:
+        return weights
+    index = torch.tensor(chunk_frame_index(T, k), device=weights.device)
+    return weights.new_zeros(weights.shape[0], T).index_add(1, index, weights)
 
 
 def first_step(features: Tensor) -> Tensor:
@@ -50,7 +77,7 @@ class FIRP(nn.Module):
         self.cfg = cfg
         E = cfg.encoder.feature_dim
         self.projection = FeatureProjection(cfg.encoder)
-        self.rssm = RSSM(cfg.rssm, E, cfg.action_dim)
+        self.rssm = RSSM(cfg.rssm, E, cfg.action_dim * cfg.action_chunk)
         self.head = SuccessHead(cfg.head, E)
         self.action_norm = ActionNormalizer(cfg.action_dim)
 
@@ -72,7 +99,9 @@ class FIRP(nn.Module):
         ``features`` (B, T, Db) backbone features of frames 0..T-1, ``actions`` (B, T, A),
         ``mask`` (B, T) bool, valid steps a prefix of each row. Returns:
 
-        * ``e`` (B, T, E) projected real features (targets; TCR acts on them);
+        * ``e`` (B, T, E) projected real features (the head's L_ce and TCR act on them);
+        * ``e_target`` (B, T, E) what the RSSM observes and is asked to predict: ``e`` detached
+          when ``cfg.loss.stop_target_gradient`` (default), else ``e`` itself;
         * the :meth:`RSSM.observe` tensors, (B, T, .): ``h``, ``post_*``, ``prior_*`` (tau = 1),
           ``feat_prior``, ``feat_post``;
         * ``open_loop``: the :meth:`RSSM.imagine` dict (B, T-1, .) from the filtered latent at
@@ -84,9 +113,17 @@ class FIRP(nn.Module):
         * ``logits_open_loop``, ``weights_open_loop``, ``features_open_loop`` (B, T, E): the head on
           [e_1, e^_2..e^_T] from the open loop, i.e. what ``score`` computes (up to sampling).
         """
-        e = self.projection(features)  # (B, T, E)
-        actions = self.action_norm(actions)  # one-hot columns unchanged, so categories stay readable
-        obs = self.rssm.observe(e, actions, sample=sample)
+        k = self.cfg.action_chunk
+        categories = plan_categories(actions)  # (B, T)
+        if k > 1:  # one transition per chunk of k plan steps; observe each chunk's frame
+            index = torch.tensor(chunk_frame_index(actions.shape[1], k), device=features.device)
+            features, categories = features[:, index], categories[:, index]  # (B, Tc, Db), (B, Tc)
+            mask = mask[:, index] if mask is not None else None
+        e = self.projection(features)  # (B, T, E) (T = Tc when chunked)
+        # what the RSSM observes and predicts: e itself, or e without a gradient into the projection
+        e_target = e.detach() if self.cfg.loss.stop_target_gradient else e  # (B, T, E)
+        actions = chunk_actions(self.action_norm(actions), k)  # (B, Tc, k * A); one-hot columns unchanged
+        obs = self.rssm.observe(e_target, actions, sample=sample)
         open_loop = self.rssm.imagine(obs["h"][:, 0], obs["post_sample"][:, 0], actions[:, 1:], sample=sample)
         seq_ol = torch.cat([e[:, :1], open_loop["feat"]], dim=1) if actions.shape[1] > 1 else e[:, :1]
         logits, weights = self.head(e, mask)
@@ -99,6 +136,8 @@ class FIRP(nn.Module):
         }
         return {
             "e": e,
+            "e_target": e_target,
+            "categories": categories,
             "mask": mask,
             **obs,
             "open_loop": open_loop,
@@ -119,7 +158,10 @@ class FIRP(nn.Module):
         only its frame 0 is read), ``actions`` (B, T, A), ``mask`` (B, T). ``sample=False`` rolls
         the means, so one plan always gets one score.
         """
+        k, T = self.cfg.action_chunk, actions.shape[1]
+        if k > 1 and mask is not None:
+            mask = mask[:, torch.tensor(chunk_frame_index(T, k), device=mask.device)]
         e1 = self.projection(first_step(first_features))  # (B, E)
-        roll = self.rssm.rollout_from_first(e1, self.action_norm(actions), sample=sample)
-        logits, weights = self.head(roll["features"], mask)
-        return Score(logits, weights, roll["features"])
+        roll = self.rssm.rollout_from_first(e1, chunk_actions(self.action_norm(actions), k), sample=sample)
+        logits, weights = self.head(roll["features"], mask)  # weights (B, Tc)
+        return Score(logits, spread_chunk_weights(weights, T, k), roll["features"])

@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from firp.bundle import load_bundle
+from firp.bundle import BundleMember, load_bundle
 from firp.contract import PlanValidationError
 from firp.ensemble import AUTO_VMAP_MAX_N, EnsembleResult, EnsembleScorer, _GRUCellOps
+from firp.model import build_model
 from firp.model.encoder import ImageEncoder
 
 from .bundle_helpers import T_RANGE, export_tiny, random_image, tiny_backbone, tiny_members, valid_plans
@@ -196,3 +197,17 @@ def test_efficientnet_bundle_scores_like_its_members(tmp_path):
         feats = encoder.backbone_features(image[None]).expand(2, -1)
         probs = [torch.sigmoid(m.model.score(feats, torch.from_numpy(plans).float()).logits) for m in members]
     np.testing.assert_allclose(result.member_probabilities, torch.stack(probs).numpy(), atol=1e-5)
+
+
+def test_chunked_members_score_the_same_batched_and_one_by_one(tmp_path):
+    """Members with ``action_chunk`` > 1 (the shipped architecture) go through vmap unchanged."""
+    cfg = dataclasses.replace(TINY, action_chunk=4)
+    members = [BundleMember("firp", cfg, build_model("firp", cfg).eval(), {"balanced_accuracy": 0.6}) for _ in range(3)]
+    bundle = load_bundle(export_tiny(tmp_path / "b", members))
+    plans = valid_plans(3, 10)
+    batched, looped = EnsembleScorer(bundle), EnsembleScorer(bundle, strategy="loop")
+    assert batched.uses_vmap(3) and not looped.uses_vmap(3)
+    a, b = batched.score(random_image(), plans), looped.score(random_image(), plans)
+    np.testing.assert_allclose(a.probabilities, b.probabilities, atol=1e-6)
+    assert a.weights.shape == (3, 10)
+    np.testing.assert_allclose(a.weights.sum(axis=1), 1.0, atol=1e-5)
