@@ -43,7 +43,10 @@ def test_product_space_also_tunes_the_prediction_weight(tiny_dataset, tmp_path, 
     monkeypatch.chdir(tmp_path)
     storage = f"sqlite:///{tmp_path / 'study.db'}"
     assert main(["--data", str(tiny_dataset), "--trials", "2", "--epochs", "1", "--threads", "1", "--image-size", "32",
-                 "--storage", storage, "--cache-dir", str(tmp_path / "cache"), "--no-progress"]) == 0
+                 "--storage", storage, "--cache-dir", str(tmp_path / "cache"), "--no-progress",
+                 "--report", str(tmp_path / "study.md")]) == 0
+    report = (tmp_path / "study.md").read_text()
+    assert "Search space `product`" in report and report.count("\n| ") == 3  # header + two trials
     study = optuna.load_study(study_name=f"firp-{tiny_dataset.stem}", storage=storage)
     assert study.user_attrs["search_space"] == "product"
     for t in study.trials:
