@@ -104,8 +104,10 @@ def markdown(summary: dict) -> str:
     if acc is None:
         lines.append("FIRP did not run (--no-score).")
     else:
-        lines += [f"FIRP accepted a plan in {acc['accepted']} of {acc['of']} trials; in the others it executed the "
-                  "last plan after the budget ran out.", "", *_markdown_table(acc, labels)]
+        others = ("" if acc["accepted"] == acc["of"] else
+                  "; in the others it executed the last plan after the budget ran out")
+        lines += [f"FIRP accepted a plan in {acc['accepted']} of {acc['of']} trials{others}.", "",
+                  *_markdown_table(acc, labels)]
     if "firp_mean_iterations" in summary:
         lines += ["", f"Mean plans scored per trial: {summary['firp_mean_iterations']:.2f}."]
     timing = summary.get("mean_timing_s") or {}
