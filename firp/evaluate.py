@@ -99,6 +99,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="backbone input size (84: the frames' own size, no resizing)")
     parser.add_argument("--out", type=Path, default=None, help="results directory (default runs/eval-<data stem>)")
     parser.add_argument("--cache-dir", type=Path, default=DEFAULT_CACHE_DIR, help="backbone feature cache")
+    parser.add_argument("--patience", type=int_in_range("--patience", 1, 10_000), default=TrainConfig.patience)
+    parser.add_argument("--lambda", dest="overshooting", type=float, default=TrainConfig.overshooting,
+                        help="latent-overshooting weight of the FIRP methods")
+    parser.add_argument("--prediction-weight", type=float, default=1.0,
+                        help="weight of FIRP's one-step prediction terms L_KL^1 + L_re^1 (paper: 1)")
     parser.add_argument("--no-progress", action="store_true")
     add_model_flags(parser)
     args = parser.parse_args(argv)
@@ -106,7 +111,12 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--data: {args.data} does not exist (collect it with python -m sim_worker collect)")
     out = args.out or Path("runs") / f"eval-{args.data.stem}"
     out.mkdir(parents=True, exist_ok=True)
-    base = TrainConfig(epochs=args.epochs, threads=args.threads, model=model_config_from(args, args.image_size))
+    if args.overshooting < 0 or args.prediction_weight < 0:
+        parser.error("--lambda and --prediction-weight must be >= 0")
+    model = model_config_from(args, args.image_size)
+    model = replace(model, loss=replace(model.loss, prediction=args.prediction_weight))
+    base = TrainConfig(epochs=args.epochs, threads=args.threads, patience=args.patience,
+                       overshooting=args.overshooting, model=model)
     torch.set_num_threads(args.threads)
     data = load_sequences(args.data, base.model.encoder, args.cache_dir, progress=not args.no_progress)
     rows = []
@@ -125,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
     print(table)
     command = f"python -m firp.evaluate --data {args.data} --repeats {args.repeats} --methods {' '.join(args.methods)} " \
               f"--epochs {args.epochs} --threads {args.threads} --head-temperature {args.head_temperature} " \
-              f"--action-chunk {args.action_chunk} --deter-dim {args.deter_dim} --hidden {args.hidden}"
+              f"--action-chunk {args.action_chunk} --deter-dim {args.deter_dim} --hidden {args.hidden} " \
+              f"--patience {args.patience} --lambda {args.overshooting} --prediction-weight {args.prediction_weight}"
     (out / "results.json").write_text(json.dumps({
         "command": command, "dataset": str(args.data), "dataset_hash": data.dataset_hash,
         "machine": {"python": platform.python_version(), "torch": torch.__version__, "threads": args.threads},
