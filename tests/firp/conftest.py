@@ -1,4 +1,4 @@
-"""Every method test (tests/firp) starts from the same random state, on one CPU thread.
+"""Every method test (tests/firp) starts from the same random state, on one CPU thread (tests/torch_fixtures.py).
 
 One thread: the tensors here are tiny, and with two OpenMP threads each op waits at a barrier for
 the second core; when that core is busy (a benchmark or a sim worker next to the tests) every op
@@ -7,25 +7,12 @@ costs a scheduler slice (~8 ms instead of ~0.02 ms), which turns a 5 s test file
 
 import numpy as np
 import pytest
-import torch
 
 from firp.contract import make_plan
 from firp.episodes import EpisodeRecord, consolidate, write_episode_part
+from tests.torch_fixtures import _one_thread, _seed  # noqa: F401  (autouse fixtures)
 
 TINY_T = 10
-
-
-@pytest.fixture(autouse=True, scope="session")
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
-@pytest.fixture(autouse=True)
-def _seed():
-    torch.manual_seed(0)
 
 
 @pytest.fixture(scope="session")

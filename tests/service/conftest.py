@@ -10,6 +10,8 @@ from __future__ import annotations
 import pytest
 import torch
 
+from tests.torch_fixtures import _one_thread, _seed  # noqa: F401  (autouse fixtures)
+
 from service.app import create_app
 from service.settings import ServiceSettings
 from tests.firp.bundle_helpers import export_tiny
@@ -19,19 +21,6 @@ from .helpers import ServiceClient
 #: Limits small enough that the refusal tests stay small, large enough for every valid request here.
 STRICT = dict(max_body_bytes=256 * 1024, max_image_bytes=16 * 1024, min_image_side=16, max_image_side=256,
               max_image_pixels=256 * 128, max_aspect_ratio=4.0, max_batch=4)
-
-
-@pytest.fixture(autouse=True, scope="session")
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
-@pytest.fixture(autouse=True)
-def _seed():
-    torch.manual_seed(0)
 
 
 @pytest.fixture(scope="session")
