@@ -20,14 +20,25 @@ def test_splits_are_disjoint_stratified_and_cover_everything():
 
 def test_protocol_writes_results_and_resumes(tiny_dataset, tmp_path):
     out = tmp_path / "eval"
-    argv = ["--data", str(tiny_dataset), "--repeats", "1", "--methods", "a_mlp", "firp", "--epochs", "2",
+    argv = ["--data", str(tiny_dataset), "--repeats", "1", "--methods", "a_mlp", "firp", "firp_tcr", "--epochs", "2",
             "--threads", "1", "--image-size", "32", "--out", str(out), "--cache-dir", str(tmp_path / "cache"),
             "--no-progress"]
     assert main(argv) == 0
     results = json.loads((out / "results.json").read_text())
-    assert {r["method"] for r in results["rows"]} == {"a_mlp", "firp"}
-    for r in results["rows"]:
-        assert 0.0 <= r["test_balanced_accuracy"] <= 1.0 and r["n_test"] == 4
+    assert {r["method"] for r in results["rows"]} == {"a_mlp", "firp", "firp_tcr", "firp_ensemble"}
+    singles = {r["method"]: r for r in results["rows"] if r["method"] != "firp_ensemble"}
+    for r in singles.values():
+        assert 0.0 <= r["test_balanced_accuracy"] <= 1.0 and r["n_test"] == 4 and len(r["test_scores"]) == 4
+    (ens,) = [r for r in results["rows"] if r["method"] == "firp_ensemble"]
+    assert ens["members"] == ["firp", "firp_tcr"] and 0.0 <= ens["test_balanced_accuracy"] <= 1.0
+    # the ensemble's scores are the members' mean: recompute its balanced accuracy from the rows
+    from firp.metrics import balanced_accuracy
+    mean = (np.array(singles["firp"]["test_scores"]) + np.array(singles["firp_tcr"]["test_scores"])) / 2
+    from firp.episodes import EpisodeDataset
+    with EpisodeDataset(tiny_dataset) as ds:
+        y = ds.success_labels()[singles["firp"]["test_index"]].astype(bool)
+    assert ens["test_balanced_accuracy"] == pytest.approx(balanced_accuracy(y, mean >= 0.5))
+    assert "firp_ensemble − best non-oracle baseline (a_mlp)" in (out / "results.md").read_text()
     assert "dvd" in results["not_run"] and "| a_mlp |" in (out / "results.md").read_text()
     # a second call finds every (repeat, method) done and trains nothing
     before = (out / "r0-firp.json").stat().st_mtime_ns
