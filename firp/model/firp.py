@@ -124,7 +124,10 @@ class FIRP(nn.Module):
         e_target = e.detach() if self.cfg.loss.stop_target_gradient else e  # (B, T, E)
         actions = chunk_actions(self.action_norm(actions), k)  # (B, Tc, k * A); one-hot columns unchanged
         obs = self.rssm.observe(e_target, actions, sample=sample)
-        open_loop = self.rssm.imagine(obs["h"][:, 0], obs["post_sample"][:, 0], actions[:, 1:], sample=sample)
+        # the open loop is what inference classifies: rolled on means when cfg.loss.open_loop_sample is off
+        ol_sample = sample and self.cfg.loss.open_loop_sample
+        s_start = obs["post_sample" if ol_sample else "post_mean"][:, 0]  # (B, S)
+        open_loop = self.rssm.imagine(obs["h"][:, 0], s_start, actions[:, 1:], sample=ol_sample)
         seq_ol = torch.cat([e[:, :1], open_loop["feat"]], dim=1) if actions.shape[1] > 1 else e[:, :1]
         logits, weights = self.head(e, mask)
         logits_ol, weights_ol = self.head(seq_ol, mask)

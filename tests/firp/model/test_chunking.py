@@ -71,3 +71,22 @@ def test_prediction_targets_do_not_train_the_projection():
     out = through.forward_train(torch.randn(2, 8, DB), random_plan(2, 8))
     firp_loss(out, random_plan(2, 8), torch.tensor([1.0, 0.0]), TINY.loss)["re"].backward()
     assert any(p.grad is not None and torch.count_nonzero(p.grad) > 0 for p in through.projection.parameters())
+
+
+@pytest.mark.parametrize("k", [1, 4])
+def test_open_loop_on_means_is_what_inference_scores(k):
+    """With ``open_loop_sample`` off, training classifies exactly the sequence ``score`` reads; with it on
+    (the paper), the training open loop is a noisy sample of it."""
+    cfg = replace(TINY, action_chunk=k)
+    model = FIRP(replace(cfg, loss=replace(cfg.loss, open_loop_sample=False))).eval()
+    B, T = 3, 10
+    feats, actions = torch.randn(B, T, DB), random_plan(B, T)
+    torch.manual_seed(0)
+    out = model.forward_train(feats, actions, sample=True)
+    score = model.score(feats[:, 0], actions)
+    assert torch.allclose(out["logits_open_loop"], score.logits, atol=1e-5)
+    assert torch.allclose(out["features_open_loop"], score.features, atol=1e-5)
+    sampled = FIRP(cfg).eval()
+    sampled.load_state_dict(model.state_dict())
+    noisy = sampled.forward_train(feats, actions, sample=True)
+    assert not torch.allclose(noisy["features_open_loop"][:, 1:], score.features[:, 1:], atol=1e-3)
