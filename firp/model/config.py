@@ -165,8 +165,8 @@ class LossConfig:
     ``open_loop_sample`` (default on, as the paper trains on samples) off rolls the training open loop
     on means from the posterior mean of e_1, i.e. exactly the sequence :meth:`FIRP.score` classifies.
     Measured once on stacking (trial 2 of the shipped study's config, seed 2, 40 epochs;
-    ``benchmarks/open_loop_sampling.py`` -> ``docs/results/open_loop_sampling.json``): the open-loop head left chance ~8 epochs earlier (validation
-    balanced accuracy 0.64 vs 0.51 at epoch 21) but peaked at the same level (0.771 at epoch 37 vs
+    ``benchmarks/open_loop_sampling.py`` -> ``docs/results/open_loop_sampling.json``): the open-loop
+    head left chance ~8 epochs earlier (validation balanced accuracy 0.64 vs 0.51 at epoch 21) but peaked at the same level (0.771 at epoch 37 vs
     0.768 at epoch 32) -- the slow start is not the sampling noise, so the default stays the paper's.
     """
 
