@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Callable
 
 
@@ -67,3 +68,27 @@ def model_config_from(args: argparse.Namespace, image_size: int):
     return FIRPConfig(encoder=EncoderConfig(image_size=image_size), action_chunk=args.action_chunk,
                       rssm=RSSMConfig(deter_dim=args.deter_dim, hidden=args.hidden),
                       head=HeadConfig(temperature=args.head_temperature))
+
+
+def add_training_flags(parser: argparse.ArgumentParser) -> None:
+    """The data and training-loop flags shared by ``firp.tune`` and ``firp.evaluate``."""
+    from firp.features import DEFAULT_CACHE_DIR
+    from firp.train import TrainConfig
+
+    parser.add_argument("--data", type=Path, required=True, help="recorded episodes (python -m sim_worker collect)")
+    parser.add_argument("--epochs", type=int_in_range("--epochs", 1, 10_000), default=TrainConfig.epochs)
+    parser.add_argument("--patience", type=int_in_range("--patience", 1, 10_000), default=TrainConfig.patience,
+                        help="early stopping: epochs without a better validation balanced accuracy")
+    parser.add_argument("--min-epochs", type=int_in_range("--min-epochs", 0, 10_000), default=TrainConfig.min_epochs,
+                        help="no early stop before this many epochs (FIRP starts at chance for tens of epochs)")
+    parser.add_argument("--threads", type=int_in_range("--threads", 1, 64), default=2, help="torch CPU threads")
+    parser.add_argument("--image-size", type=int_in_range("--image-size", 16, 512), default=84,
+                        help="backbone input size (84: the frames' own size, no resizing)")
+    parser.add_argument("--cache-dir", type=Path, default=DEFAULT_CACHE_DIR, help="backbone feature cache")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars (logs, CI)")
+
+
+def check_data_flag(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Fail with a CLI error naming --data when the dataset file is missing."""
+    if not args.data.exists():
+        parser.error(f"--data: {args.data} does not exist (collect it with python -m sim_worker collect)")

@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from firp.cli import add_model_flags, int_in_range, model_config_from
+from firp.cli import add_model_flags, add_training_flags, check_data_flag, int_in_range, model_config_from, \
+    non_negative_float
 from firp.data import SequenceData, load_sequences, stratified_split
-from firp.features import DEFAULT_CACHE_DIR
 from firp.metrics import balanced_accuracy, choose_threshold
 
 from firp.train import TrainConfig, predict, train_model
@@ -135,32 +135,22 @@ def summary_table(rows: list[dict], methods: list[str]) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m firp.evaluate", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, required=True)
+    add_training_flags(parser)
     parser.add_argument("--repeats", type=int_in_range("--repeats", 1, 100), default=5)
     parser.add_argument("--methods", nargs="+", choices=sorted(METHODS), default=list(DEFAULT_METHODS))
-    parser.add_argument("--epochs", type=int_in_range("--epochs", 1, 10_000), default=TrainConfig.epochs)
-    parser.add_argument("--threads", type=int_in_range("--threads", 1, 64), default=2)
-    parser.add_argument("--image-size", type=int_in_range("--image-size", 16, 512), default=84,
-                        help="backbone input size (84: the frames' own size, no resizing)")
     parser.add_argument("--out", type=Path, default=None, help="results directory (default runs/eval-<data stem>)")
-    parser.add_argument("--cache-dir", type=Path, default=DEFAULT_CACHE_DIR, help="backbone feature cache")
-    parser.add_argument("--patience", type=int_in_range("--patience", 1, 10_000), default=TrainConfig.patience)
-    parser.add_argument("--lambda", dest="overshooting", type=float, default=TrainConfig.overshooting,
-                        help="latent-overshooting weight of the FIRP methods")
-    parser.add_argument("--prediction-weight", type=float, default=1.0,
+    parser.add_argument("--lambda", dest="overshooting", type=non_negative_float("--lambda"),
+                        default=TrainConfig.overshooting, help="latent-overshooting weight of the FIRP methods")
+    parser.add_argument("--prediction-weight", type=non_negative_float("--prediction-weight"), default=1.0,
                         help="weight of FIRP's one-step prediction terms L_KL^1 + L_re^1 (paper: 1)")
-    parser.add_argument("--no-progress", action="store_true")
     add_model_flags(parser)
     args = parser.parse_args(argv)
-    if not args.data.exists():
-        parser.error(f"--data: {args.data} does not exist (collect it with python -m sim_worker collect)")
+    check_data_flag(parser, args)
     out = args.out or Path("runs") / f"eval-{args.data.stem}"
     out.mkdir(parents=True, exist_ok=True)
-    if args.overshooting < 0 or args.prediction_weight < 0:
-        parser.error("--lambda and --prediction-weight must be >= 0")
     model = model_config_from(args, args.image_size)
     model = replace(model, loss=replace(model.loss, prediction=args.prediction_weight))
-    base = TrainConfig(epochs=args.epochs, threads=args.threads, patience=args.patience,
+    base = TrainConfig(epochs=args.epochs, threads=args.threads, patience=args.patience, min_epochs=args.min_epochs,
                        overshooting=args.overshooting, model=model)
     torch.set_num_threads(args.threads)
     data = load_sequences(args.data, base.model.encoder, args.cache_dir, progress=not args.no_progress)
@@ -185,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     command = f"python -m firp.evaluate --data {args.data} --repeats {args.repeats} --methods {' '.join(args.methods)} " \
               f"--epochs {args.epochs} --threads {args.threads} --head-temperature {args.head_temperature} " \
               f"--action-chunk {args.action_chunk} --deter-dim {args.deter_dim} --hidden {args.hidden} " \
-              f"--patience {args.patience} --lambda {args.overshooting} --prediction-weight {args.prediction_weight}"
+              f"--patience {args.patience} --min-epochs {args.min_epochs} --lambda {args.overshooting} --prediction-weight {args.prediction_weight}"
     (out / "results.json").write_text(json.dumps({
         "command": command, "dataset": str(args.data), "dataset_hash": data.dataset_hash,
         "machine": {"python": platform.python_version(), "torch": torch.__version__, "threads": args.threads},

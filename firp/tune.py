@@ -27,10 +27,9 @@ import torch
 from safetensors.torch import load_file
 
 from firp.bundle import BundleMember, export_bundle
-from firp.cli import add_model_flags, int_in_range, model_config_from
+from firp.cli import add_model_flags, add_training_flags, check_data_flag, int_in_range, model_config_from
 from firp.contract import PlanLimits
 from firp.data import SequenceData, load_sequences, stratified_split
-from firp.features import DEFAULT_CACHE_DIR
 from firp.metrics import balanced_accuracy, choose_threshold, expected_calibration_error, reliability_diagram
 from firp.model.baselines import build_model
 
@@ -179,32 +178,24 @@ def study_table(study: optuna.Study) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m firp.tune", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, required=True)
+    add_training_flags(parser)
     parser.add_argument("--trials", type=int_in_range("--trials", 0, 10_000), default=20)
-    parser.add_argument("--epochs", type=int_in_range("--epochs", 1, 10_000), default=TrainConfig.epochs)
     parser.add_argument("--storage", default=None, help="Optuna storage URL (default: sqlite:///runs/tune-<data>.db)")
     parser.add_argument("--study", default=None, help="study name (default: firp-<data stem>)")
-    parser.add_argument("--threads", type=int_in_range("--threads", 1, 64), default=2)
-    parser.add_argument("--image-size", type=int_in_range("--image-size", 16, 512), default=84)
-    parser.add_argument("--cache-dir", type=Path, default=DEFAULT_CACHE_DIR)
     parser.add_argument("--export", type=Path, default=None, help="write the top-five bundle to this directory")
     parser.add_argument("--task", default=None, help="task name for the bundle (default: the dataset's)")
-    parser.add_argument("--patience", type=int_in_range("--patience", 1, 10_000), default=TrainConfig.patience,
-                        help="early stopping: epochs without a better validation balanced accuracy")
     parser.add_argument("--report", type=Path, default=None, help="also write the study's trials as a Markdown table")
     parser.add_argument("--space", choices=sorted(SPACES), default="product",
                         help="search space: the paper's grid or the narrowed product grid (default)")
-    parser.add_argument("--no-progress", action="store_true")
     add_model_flags(parser)
     args = parser.parse_args(argv)
-    if not args.data.exists():
-        parser.error(f"--data: {args.data} does not exist (collect it with python -m sim_worker collect)")
+    check_data_flag(parser, args)
     runs = Path("runs")
     runs.mkdir(exist_ok=True)
     storage = args.storage or f"sqlite:///{runs / ('tune-' + args.data.stem + '.db')}"
     study_name = args.study or f"firp-{args.data.stem}"
     torch.set_num_threads(args.threads)
-    base = TrainConfig(epochs=args.epochs, threads=args.threads, patience=args.patience,
+    base = TrainConfig(epochs=args.epochs, threads=args.threads, patience=args.patience, min_epochs=args.min_epochs,
                        model=model_config_from(args, args.image_size))
     data = load_sequences(args.data, base.model.encoder, args.cache_dir, progress=not args.no_progress)
     started = time.perf_counter()

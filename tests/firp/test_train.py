@@ -87,3 +87,22 @@ def test_a_learnable_label_is_learned(splits):
     cfg = replace(cfg, model=replace(cfg.model, baseline=replace(cfg.model.baseline, plan_pooling="mean")))
     result = train_model(cfg, train, valid, progress=False)
     assert result.best_val_balanced_accuracy >= 0.75
+
+
+def test_no_early_stop_before_min_epochs(splits):
+    train, valid = splits
+    early = train_model(config(kind="a_mlp", epochs=8, patience=1, lr=0.0), train, valid, progress=False)
+    assert len(early.history) == 2  # lr 0: never better than epoch 0, stops after `patience` epochs
+    held = train_model(config(kind="a_mlp", epochs=8, patience=1, lr=0.0, min_epochs=6), train, valid, progress=False)
+    assert len(held.history) == 6
+
+
+def test_checkpoint_without_a_newer_config_field_resumes(tmp_path, splits):
+    train, valid = splits
+    cfg = config(epochs=1, kind="a_mlp")
+    train_model(cfg, train, valid, checkpoint_dir=tmp_path, progress=False)
+    state = json.loads((tmp_path / "state.json").read_text())
+    del state["config"]["min_epochs"]  # as written before the field existed
+    (tmp_path / "state.json").write_text(json.dumps(state))
+    resumed = train_model(cfg, train, valid, checkpoint_dir=tmp_path, progress=False)
+    assert len(resumed.history) == 1
