@@ -188,6 +188,10 @@ def prediction_errors(e: np.ndarray, e_hat: np.ndarray) -> dict[str, np.ndarray]
     which are easy to "predict" by a constant; ``final_vs_mean`` divides by the error of exactly
     that constant (the test set's mean e_T), so it is < 1 only when the rollout knows something
     about this episode. Step 0 is left out of the means over t: ê_1 = e_1 by construction.
+
+    With the default encoder (``feature_norm = "layernorm"``, no affine) every real e_t has norm
+    √E, so s is the same for every variant and the raw and divided errors differ by that constant;
+    the predicted ê_t are not normalised, which the cosine distance separates from direction.
     """
     diff = np.linalg.norm(e - e_hat, axis=-1)  # (N, Tc)
     norm_e, norm_hat = np.linalg.norm(e, axis=-1), np.linalg.norm(e_hat, axis=-1)
@@ -269,7 +273,10 @@ def summarise(results: list[dict], methods: tuple[str, ...]) -> dict[str, dict]:
 
 
 def _fmt(s: dict | None, digits: int = 3) -> str:
-    return "—" if not s else f"{s['mean']:.{digits}f} ± {s['std']:.{digits}f}"
+    """``mean ± std`` over repeats; the mean alone for one repeat (a std of 0 would claim a spread)."""
+    if not s:
+        return "—"
+    return f"{s['mean']:.{digits}f}" if s["n_repeats"] == 1 else f"{s['mean']:.{digits}f} ± {s['std']:.{digits}f}"
 
 
 def markdown(summary: dict[str, dict], results: list[dict], command: str, skipped: list[str], tsne: dict | None,
@@ -278,7 +285,8 @@ def markdown(summary: dict[str, dict], results: list[dict], command: str, skippe
     cols = ["final_l2", "final_rel", "final_cos", "final_vs_mean", "mean_rel"]
     stats = ["scale", "r_ttc", "r_atc", "silhouette", "test_balanced_accuracy"]
     lines = ["# TCR ablation: open-loop prediction errors and feature statistics", "", f"`{command}`", "",
-             f"{seconds:.0f} s. Test episodes of every repeat; mean ± std over repeats of the per-repeat means.", "",
+             f"{seconds:.0f} s. Test episodes of every repeat; mean ± std over repeats of the per-repeat means "
+             "(the mean alone when there is one repeat).", "",
              "| variant | repeats | episodes | " + " | ".join(METRICS[c][0] for c in cols) + " | "
              + " | ".join(FEATURE_STATS[c][0] for c in stats) + " |",
              "|---|---|---|" + "---|" * (len(cols) + len(stats))]
@@ -362,7 +370,7 @@ def plot_by_step(results: list[dict], methods: list[str], path: Path) -> None:
             curves = np.asarray([r["per_step"][key] for r in rows])
             x = np.asarray(rows[0]["frame_index"])
             mean, std = curves.mean(axis=0), curves.std(axis=0)
-            ax.plot(x, mean, marker=".", label=f"{LABELS[m]} ({len(rows)} repeats)")
+            ax.plot(x, mean, marker=".", label=f"{LABELS[m]} ({len(rows)} repeat{'' if len(rows) == 1 else 's'})")
             ax.fill_between(x, mean - std, mean + std, alpha=0.15)
         ax.set_xlabel("plan step of the observed frame")
         ax.set_title(title)
@@ -417,8 +425,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="only these repeats (default: every finished one)")
     parser.add_argument("--tsne-repeat", type=int_in_range("--tsne-repeat", 0, 999), default=None,
                         help="repeat whose test episodes the t-SNE shows (default: the first with the most variants)")
-    parser.add_argument("--tsne-episodes", type=int_in_range("--tsne-episodes", 1, 100_000), default=24,
-                        help="test episodes in the t-SNE subsample")
+    parser.add_argument("--tsne-episodes", type=int_in_range("--tsne-episodes", 1, 100_000), default=16,
+                        help="test episodes in the t-SNE subsample (each gives ceil(T / action_chunk) points)")
     parser.add_argument("--tsne-features", choices=("real", "predicted"), default="real",
                         help="embed the real e_t (the paper's figure) or the open-loop ê_t")
     parser.add_argument("--perplexity", type=positive_float("--perplexity"), default=30.0)
