@@ -138,6 +138,9 @@ def main(argv: list[str] | None = None) -> int:
     add_training_flags(parser)
     parser.add_argument("--repeats", type=int_in_range("--repeats", 1, 100), default=5)
     parser.add_argument("--methods", nargs="+", choices=sorted(METHODS), default=list(DEFAULT_METHODS))
+    parser.add_argument("--only-repeats", nargs="+", type=int_in_range("--only-repeats", 0, 99), default=None,
+                        help="train only these repeat indices (e.g. one process per core or machine, same --out); "
+                             "the summary still covers every finished (repeat, method) of the first --repeats")
     parser.add_argument("--out", type=Path, default=None, help="results directory (default runs/eval-<data stem>)")
     parser.add_argument("--lambda", dest="overshooting", type=non_negative_float("--lambda"),
                         default=TrainConfig.overshooting, help="latent-overshooting weight of the FIRP methods")
@@ -146,6 +149,8 @@ def main(argv: list[str] | None = None) -> int:
     add_model_flags(parser)
     args = parser.parse_args(argv)
     check_data_flag(parser, args)
+    if args.only_repeats is not None and max(args.only_repeats) >= args.repeats:
+        parser.error(f"--only-repeats: every index must be < --repeats ({args.repeats}), got {args.only_repeats}")
     out = args.out or Path("runs") / f"eval-{args.data.stem}"
     out.mkdir(parents=True, exist_ok=True)
     model = model_config_from(args, args.image_size)
@@ -160,6 +165,8 @@ def main(argv: list[str] | None = None) -> int:
             path = out / f"r{repeat}-{name}.json"
             if path.exists():
                 rows.append(json.loads(path.read_text()))
+                continue
+            if args.only_repeats is not None and repeat not in args.only_repeats:
                 continue
             row = evaluate_method(name, base, data, repeat, out / f"r{repeat}-{name}", not args.no_progress)
             path.write_text(json.dumps(row, indent=1))

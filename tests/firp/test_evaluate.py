@@ -46,6 +46,19 @@ def test_protocol_writes_results_and_resumes(tiny_dataset, tmp_path):
     assert (out / "r0-firp.json").stat().st_mtime_ns == before
 
 
+def test_only_repeats_trains_its_share_and_summarises_all(tiny_dataset, tmp_path, capsys):
+    out = tmp_path / "eval"
+    common = ["--data", str(tiny_dataset), "--repeats", "2", "--methods", "a_mlp", "--epochs", "1", "--threads", "1",
+              "--image-size", "32", "--out", str(out), "--cache-dir", str(tmp_path / "cache"), "--no-progress"]
+    assert main([*common, "--only-repeats", "1"]) == 0
+    assert not (out / "r0-a_mlp.json").exists() and (out / "r1-a_mlp.json").exists()
+    assert main([*common, "--only-repeats", "0"]) == 0
+    assert [r["repeat"] for r in json.loads((out / "results.json").read_text())["rows"]] == [0, 1]
+    with pytest.raises(SystemExit):
+        main([*common, "--only-repeats", "2"])
+    assert "--only-repeats: every index must be < --repeats (2)" in capsys.readouterr().err
+
+
 def test_missing_dataset_is_a_clear_cli_error(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--data", str(tmp_path / "nope.h5")])
