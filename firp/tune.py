@@ -129,8 +129,11 @@ def load_trial_model(trial: optuna.trial.FrozenTrial) -> tuple[TrainConfig, torc
 
 
 def export_top_ensemble(study: optuna.Study, data: SequenceData, dataset_path: Path, out_dir: Path, task: str,
-                        k: int = TOP_K) -> dict:
-    """Bundle the ``k`` best trials: threshold and calibration chosen on the validation episodes."""
+                        k: int = TOP_K, reliability_png: Path | None = None) -> dict:
+    """Bundle the ``k`` best trials: threshold and calibration chosen on the validation episodes.
+
+    The reliability diagram goes to ``reliability_png`` (default ``runs/<study>_reliability.png``),
+    not into the bundle's folder: a package's data directory is no place for reports."""
     chosen = top_trials(study, k)
     if not chosen:
         raise ValueError("the study has no finished trial to export")
@@ -157,9 +160,11 @@ def export_top_ensemble(study: optuna.Study, data: SequenceData, dataset_path: P
         t_range=PlanLimits(data.actions.shape[1], data.actions.shape[1]), overwrite=True,
         extra={"study": study.study_name, "trials": [t.number for t in chosen]},
     )
-    reliability_diagram(labels, ensemble, out_dir.parent / f"{out_dir.name}_reliability.png",
+    png = reliability_png or Path("runs") / f"{study.study_name}_reliability.png"
+    png.parent.mkdir(parents=True, exist_ok=True)
+    reliability_diagram(labels, ensemble, png,
                         f"{task}: top-{len(chosen)} ensemble on validation data (ECE {ece:.3f})")
-    return {"threshold": threshold, "ece": ece, "members": [t.number for t in chosen]}
+    return {"threshold": threshold, "ece": ece, "members": [t.number for t in chosen], "reliability_png": str(png)}
 
 
 def study_table(study: optuna.Study) -> str:
@@ -185,6 +190,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--export", type=Path, default=None, help="write the top-five bundle to this directory")
     parser.add_argument("--task", default=None, help="task name for the bundle (default: the dataset's)")
     parser.add_argument("--report", type=Path, default=None, help="also write the study's trials as a Markdown table")
+    parser.add_argument("--reliability", type=Path, default=None,
+                        help="with --export: the reliability diagram PNG (default runs/<study>_reliability.png)")
     parser.add_argument("--space", choices=sorted(SPACES), default="product",
                         help="search space: the paper's grid or the narrowed product grid (default)")
     add_model_flags(parser)
@@ -216,9 +223,9 @@ def main(argv: list[str] | None = None) -> int:
 
         with EpisodeDataset(args.data) as ds:
             task = args.task or str(ds.attrs.get("task", args.data.stem))
-        info = export_top_ensemble(study, data, args.data, args.export, task)
+        info = export_top_ensemble(study, data, args.data, args.export, task, reliability_png=args.reliability)
         print(f"wrote bundle {args.export}: threshold {info['threshold']:.3f}, ECE {info['ece']:.3f}, "
-              f"trials {info['members']}")
+              f"trials {info['members']}; reliability diagram {info['reliability_png']}")
     return 0
 
 

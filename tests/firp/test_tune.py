@@ -27,10 +27,11 @@ def test_tune_export_load_score(tiny_dataset, tmp_path, monkeypatch):
         assert t.params["lr"] in (1e-5, 1e-4, 3e-4, 1e-3) and t.params["alpha"] in (1e-3, 1e-2, 1e-1, 0.0)
 
     bundle_dir = tmp_path / "bundle"
-    assert main([*argv[:3], "0", *argv[4:], "--export", str(bundle_dir)]) == 0
+    png = tmp_path / "report" / "reliability.png"
+    assert main([*argv[:3], "0", *argv[4:], "--export", str(bundle_dir), "--reliability", str(png)]) == 0
     bundle = load_bundle(bundle_dir)
     assert len(bundle.models) == 4 and 0.0 <= bundle.threshold <= 1.0
-    assert (tmp_path / "bundle_reliability.png").stat().st_size > 0
+    assert png.stat().st_size > 0 and not list(tmp_path.glob("*_reliability.png"))  # nothing beside the bundle
     with EpisodeDataset(tiny_dataset) as ds:
         image, plan = ds.frames(0)[0], ds.actions(0)
     result = EnsembleScorer(bundle).score(image, np.stack([plan, plan]))
