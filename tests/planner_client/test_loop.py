@@ -277,11 +277,12 @@ def test_cli_names_a_missing_bundle_and_how_to_make_one(tmp_path, capsys):
     err = capsys.readouterr().err
     assert str(missing) in err and "does not exist" in err
     assert "python -m firp.tune --data data/stacking.h5" in err and "--export firp/bundles/stacking" in err
-    # the shipped default is looked up inside the firp package (none ships for replacement)
-    with pytest.raises(SystemExit):
-        main(["run", "--trials", "1", "--task", "replacement", "--out", str(out)])
-    assert "firp/bundles/replacement" in capsys.readouterr().err
     assert not out.parent.exists()  # nothing was launched or written
+    # the shipped defaults are looked up inside the firp package: one per task
+    from planner_client.bundles import shipped_bundle_dir
+    for task in ("stacking", "replacement"):
+        assert shipped_bundle_dir(task).parts[-3:] == ("firp", "bundles", task)
+        assert (shipped_bundle_dir(task) / "manifest.json").is_file()
 
 
 def test_the_run_path_never_imports_torch():
