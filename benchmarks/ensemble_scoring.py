@@ -1,13 +1,16 @@
-"""Ensemble scoring: members run by vmap vs a plain loop, and the cost of the backbone.
+"""Ensemble scoring: members fused vs vmapped vs a plain loop, and the cost of the backbone.
 
 Builds an M-member bundle of randomly initialised FIRP members (default FIRPConfig sizes: the
-member cost does not depend on the weights' values), then times the member computation of
-:class:`firp.ensemble.EnsembleScorer` with ``strategy="loop"`` and ``strategy="vmap"`` for N plans
-of T steps, interleaving the two so that load from other processes hits both alike. Reports min
-and median over repeats; checks that both strategies agree. The backbone runs once per call and
-is timed apart (``--backbone efficientnet_lite0`` for the real one).
+member cost does not depend on the weights' values), or loads ``--bundle DIR`` (e.g. the shipped
+``firp/bundles/stacking``), then times the member computation of
+:class:`firp.ensemble.EnsembleScorer` with each ``--strategies`` (default ``loop vmap fused``) for
+N plans of T steps, interleaving them so that load from other processes hits all alike. Reports
+min and median over repeats, and each strategy's largest probability difference from the loop.
+The backbone runs once per call and is timed apart (``--backbone efficientnet_lite0`` for the
+real one).
 
     python benchmarks/ensemble_scoring.py --threads 1 --repeats 15
+    python benchmarks/ensemble_scoring.py --bundle firp/bundles/stacking --N 1 8 32 --repeats 20
 """
 
 from __future__ import annotations
@@ -44,27 +47,38 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--backbone", choices=["small_cnn", "efficientnet_lite0"], default="small_cnn")
+    ap.add_argument("--bundle", type=Path, default=None,
+                    help="time this bundle's members (its backbone, image size and T range) instead of random ones")
+    ap.add_argument("--strategies", nargs="+", choices=["loop", "vmap", "fused"], default=["loop", "vmap", "fused"])
     ap.add_argument("--out", type=Path, default=None, help="write the results as JSON here")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
 
-    image_size = 224 if args.backbone == "efficientnet_lite0" else 64
-    cfg = FIRPConfig(encoder=EncoderConfig(backbone=args.backbone, image_size=image_size))
-    members = [BundleMember("firp", cfg, build_model("firp", cfg)) for _ in range(args.members)]
-    backbone = build_backbone(cfg.encoder) if args.backbone == "small_cnn" else None
-    with tempfile.TemporaryDirectory() as tmp:
-        path = export_bundle(Path(tmp) / "bench", members, name="bench", task="bench", threshold=0.5,
-                             calibration={"ece": 0.0, "n_val": 0}, metrics={}, training_data_hash="-",
-                             training_data_path="-", t_range=(8, 400), backbone=backbone)
-        bundle = load_bundle(path)
-    scorers = {s: EnsembleScorer(bundle, strategy=s) for s in ("loop", "vmap")}
-    image = np.random.default_rng(0).integers(0, 256, (224, 224, 3), dtype=np.uint8)
+    if args.bundle is not None:
+        bundle = load_bundle(args.bundle)
+        image_size, config_name = bundle.encoder_config.image_size, f"bundle {args.bundle}"
+        args.backbone, args.members = bundle.encoder_config.backbone, len(bundle.models)
+        if not bundle.t_range.t_min <= args.T <= bundle.t_range.t_max:
+            ap.error(f"--T {args.T} is outside the bundle's T range {bundle.t_range}")
+    else:
+        image_size, config_name = (224 if args.backbone == "efficientnet_lite0" else 64), "FIRPConfig() defaults"
+        cfg = FIRPConfig(encoder=EncoderConfig(backbone=args.backbone, image_size=image_size))
+        members = [BundleMember("firp", cfg, build_model("firp", cfg)) for _ in range(args.members)]
+        backbone = build_backbone(cfg.encoder) if args.backbone == "small_cnn" else None
+        with tempfile.TemporaryDirectory() as tmp:
+            path = export_bundle(Path(tmp) / "bench", members, name="bench", task="bench", threshold=0.5,
+                                 calibration={"ece": 0.0, "n_val": 0}, metrics={}, training_data_hash="-",
+                                 training_data_path="-", t_range=(8, 400), backbone=backbone)
+            bundle = load_bundle(path)
+    strategies = ["loop"] + [s for s in args.strategies if s != "loop"]  # the loop is the reference
+    scorers = {s: EnsembleScorer(bundle, strategy=s) for s in strategies}
+    image = np.random.default_rng(0).integers(0, 256, (image_size, image_size, 3), dtype=np.uint8)
 
     results: dict[str, object] = {
         "machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
         "load_avg_1min": os.getloadavg()[0], "torch": torch.__version__, "threads": args.threads,
-        "members": args.members, "T": args.T, "config": "FIRPConfig() defaults", "runs": {},
+        "members": args.members, "T": args.T, "config": config_name, "runs": {},
     }
     with torch.inference_mode():
         times = []
@@ -76,24 +90,23 @@ def main() -> None:
                                   "median": 1e3 * statistics.median(times)}
         for n in args.N:
             actions = torch.from_numpy(random_plans(n, args.T)).float()
-            f = feats.expand(n, -1)
-            ref = scorers["loop"]._run_members(f, actions)[0]
-            got = scorers["vmap"]._run_members(f, actions)[0]
-            max_diff = float((torch.sigmoid(ref) - torch.sigmoid(got)).abs().max())
-            timings: dict[str, list[float]] = {"loop": [], "vmap": []}
+            ref = torch.sigmoid(scorers["loop"]._run_members(feats, actions)[0])
+            diffs = {s: float((torch.sigmoid(scorers[s]._run_members(feats, actions)[0]) - ref).abs().max())
+                     for s in strategies[1:]}
+            timings: dict[str, list[float]] = {s: [] for s in strategies}
             for s in timings:  # warm-up
-                scorers[s]._run_members(f, actions)
+                scorers[s]._run_members(feats, actions)
             for _ in range(args.repeats):
                 for s in timings:
                     start = time.perf_counter()
-                    scorers[s]._run_members(f, actions)
+                    scorers[s]._run_members(feats, actions)
                     timings[s].append(1e3 * (time.perf_counter() - start))
-            row = {s: {"min_ms": min(v), "median_ms": statistics.median(v)} for s, v in timings.items()}
-            row["max_abs_prob_diff"] = max_diff
+            row: dict[str, object] = {s: {"min_ms": min(v), "median_ms": statistics.median(v)} for s, v in timings.items()}
+            row["max_abs_prob_diff_from_loop"] = diffs
             results["runs"][f"N={n}"] = row  # type: ignore[index]
-            print(f"N={n:3d} T={args.T}: loop min {row['loop']['min_ms']:.1f} / median "
-                  f"{row['loop']['median_ms']:.1f} ms | vmap min {row['vmap']['min_ms']:.1f} / median {row['vmap']['median_ms']:.1f} ms"
-                  f" | max |dp| {max_diff:.1e}", flush=True)
+            cells = " | ".join(f"{s} min {min(v):.1f} / median {statistics.median(v):.1f} ms" for s, v in timings.items())
+            diff_text = ", ".join(f"{s} {d:.1e}" for s, d in diffs.items())
+            print(f"N={n:3d} T={args.T}: {cells} | max |dp| vs loop: {diff_text}", flush=True)
     print(f"backbone ({args.backbone}) once per call: {results['backbone_ms']}")  # type: ignore[index]
     print(f"load average at start: {results['load_avg_1min']:.2f} on {results['cpus']} CPUs")
     if args.out:

@@ -8,13 +8,18 @@ until ``/readyz`` says ready, then measures with keep-alive HTTP clients:
   miss: PNG decode + backbone on every call) -- p50 / p99 per run, medians over runs;
 * ``POST /v1/score/batch`` with ``--batch`` plans -- plans per second;
 * ``--clients`` concurrent clients for ``--seconds`` -- errors, throughput, p50 / p99;
+* single V2 inference (``POST /v2/models/{name}/infer``, same image and plan) in the JSON form and
+  with the binary tensor extension as Triton's clients send it (image as UINT8 pixels, plan as
+  FP32 bytes, binary outputs);
+* with ``--compare-no-micro-batch``: the concurrent run again on a server with micro-batching off;
+  with ``--compare-threads N``: single and batch again on a server with N torch threads;
 * the ratio of executing a T=120 plan in the simulator (``docs/results/sim_throughput.json``, not
   re-measured: this script does not import mujoco) to scoring it.
 
 Targets (issue 4; for T = 120 and five members): single p50 <= 15 ms, p99 <= 40 ms; batch of 32
 >= 200 plans/s; concurrent: zero errors.
 
-    python benchmarks/service_latency.py --bundle firp/bundles/stacking
+    python benchmarks/service_latency.py --bundle firp/bundles/stacking --compare-no-micro-batch --compare-threads 2
     python benchmarks/service_latency.py --bundle /tmp/tiny --T 16 --seconds 5 --repeats 50 --out /tmp/smoke.json
 
 The client process imports neither torch nor mujoco; the server runs with ``--threads`` torch
@@ -80,10 +85,10 @@ def pct(values: list[float], q: float) -> float:
 class Server:
     """``python -m service`` in a subprocess; stopped (SIGTERM, then SIGKILL) on exit."""
 
-    def __init__(self, bundle: Path, threads: int, port: int, ready_timeout: float):
+    def __init__(self, bundle: Path, threads: int, port: int, ready_timeout: float, micro_batch: bool = True):
         self.base = f"http://127.0.0.1:{port}"
         env = {k: v for k, v in os.environ.items() if not k.startswith("FIRP_SERVICE_")}
-        env.update(OMP_NUM_THREADS=str(threads), PYTHONPATH=str(ROOT))
+        env.update(OMP_NUM_THREADS=str(threads), PYTHONPATH=str(ROOT), FIRP_SERVICE_MICRO_BATCH=str(micro_batch).lower())
         self.log = open(Path(os.environ.get("TMPDIR", "/tmp")) / f"service_latency_{port}.log", "w+")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "service", "--host", "127.0.0.1", "--port", str(port), "--bundle", str(bundle),
@@ -145,6 +150,42 @@ def single_runs(base: str, images: list[str], plan: list[list[float]], runs: int
     return {key: statistics.median(r[key] for r in per_run) for key in per_run[0]} | {"runs": per_run}
 
 
+def v2_bodies(image: np.ndarray, plan: list[list[float]]) -> dict[str, tuple[bytes, dict[str, str]]]:
+    """The same V2 request as JSON and with the binary tensor extension (what ``tritonclient.http``
+    sends by default: no Content-Type, ``Inference-Header-Content-Length``, binary outputs)."""
+    arr = np.asarray(plan, dtype=np.float32)
+    image_spec = {"name": "image", "shape": list(image.shape), "datatype": "UINT8"}
+    plan_spec = {"name": "plan", "shape": list(arr.shape), "datatype": "FP32"}
+    as_json = json.dumps({"inputs": [{**image_spec, "data": image.ravel().tolist()},
+                                     {**plan_spec, "data": arr.ravel().tolist()}]}).encode()
+    header = json.dumps({"inputs": [{**image_spec, "parameters": {"binary_data_size": image.nbytes}},
+                                    {**plan_spec, "parameters": {"binary_data_size": arr.nbytes}}],
+                         "parameters": {"binary_data_output": True}}).encode()
+    return {"json": (as_json, {"Content-Type": "application/json"}),
+            "binary": (header + image.tobytes() + arr.tobytes(), {"Inference-Header-Content-Length": str(len(header))})}
+
+
+def v2_runs(base: str, model: str, body: bytes, headers: dict[str, str], runs: int, repeats: int) -> dict[str, Any]:
+    """Sequential V2 infer calls with a prepared body (the same image every time: cached features)."""
+    url = f"/v2/models/{model}/infer"
+
+    def call(client: httpx.Client) -> float:
+        start = time.perf_counter()
+        r = client.post(url, content=body, headers=headers)
+        if r.status_code != 200:
+            fail(f"{url} answered {r.status_code}: {r.text[:500]}")
+        return (time.perf_counter() - start) * 1000.0
+
+    per_run = []
+    with httpx.Client(base_url=base, timeout=60) as client:
+        for _ in range(5):
+            call(client)
+        for _ in range(runs):
+            lat = [call(client) for _ in range(repeats)]
+            per_run.append({"p50_ms": pct(lat, 50), "p99_ms": pct(lat, 99), "mean_ms": statistics.fmean(lat)})
+    return {key: statistics.median(r[key] for r in per_run) for key in per_run[0]} | {"runs": per_run}
+
+
 def batch_runs(base: str, image: str, plans: list[list[list[float]]], runs: int, repeats: int) -> dict[str, Any]:
     per_run = []
     with httpx.Client(base_url=base, timeout=120) as client:
@@ -202,6 +243,12 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=60.0, help="duration of the concurrent measurement")
     ap.add_argument("--image-size", type=int, default=84, help="side of the PNG sent (the camera's frames: 84)")
     ap.add_argument("--ready-timeout", type=float, default=300.0)
+    ap.add_argument("--no-micro-batch", dest="micro_batch", action="store_false",
+                    help="measure a server with micro-batching off (FIRP_SERVICE_MICRO_BATCH=false)")
+    ap.add_argument("--compare-no-micro-batch", action="store_true",
+                    help="also run the concurrent measurement on a second server with micro-batching off")
+    ap.add_argument("--compare-threads", type=int, default=None, metavar="N",
+                    help="also measure single and batch on a second server with N torch threads")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results" / "service_latency.json")
     args = ap.parse_args()
 
@@ -226,16 +273,38 @@ def main() -> None:
     plan = random_plans(1, args.T, seed=1)[0]
     plans = random_plans(args.batch, args.T, seed=2)
 
-    server = Server(args.bundle, args.threads, free_port(), args.ready_timeout)
+    bodies = v2_bodies(base_image, plan)
+    server = Server(args.bundle, args.threads, free_port(), args.ready_timeout, args.micro_batch)
     try:
-        print(f"serving {manifest['name']} ({members} members, T={args.T}) at {server.base}; "
+        print(f"serving {manifest['name']} ({members} members, T={args.T}, micro-batching "
+              f"{'on' if args.micro_batch else 'off'}) at {server.base}; "
               f"warm-up {server.ready.get('warmup_ms', 0):.0f} ms", flush=True)
         cached = single_runs(server.base, same, plan, args.runs, args.repeats)
         uncached = single_runs(server.base, distinct, plan, args.runs, args.repeats)
+        v2 = {form: v2_runs(server.base, manifest["name"], body, headers, args.runs, args.repeats)
+              for form, (body, headers) in bodies.items()}
         batch = batch_runs(server.base, same[0], plans, args.runs, max(args.repeats // 10, 5))
         concurrent = concurrent_run(server.base, same[0], plan, args.clients, args.seconds)
     finally:
         server.stop()
+    compare: dict[str, Any] = {}
+    if args.compare_no_micro_batch:
+        other = Server(args.bundle, args.threads, free_port(), args.ready_timeout, micro_batch=not args.micro_batch)
+        try:
+            print(f"comparison: micro-batching {'off' if args.micro_batch else 'on'}", flush=True)
+            compare["micro_batch_" + ("off" if args.micro_batch else "on")] = {
+                "concurrent": concurrent_run(other.base, same[0], plan, args.clients, args.seconds)}
+        finally:
+            other.stop()
+    if args.compare_threads is not None:
+        other = Server(args.bundle, args.compare_threads, free_port(), args.ready_timeout, args.micro_batch)
+        try:
+            print(f"comparison: {args.compare_threads} torch threads", flush=True)
+            compare[f"threads_{args.compare_threads}"] = {
+                "single_same_image": single_runs(other.base, same, plan, args.runs, args.repeats),
+                "batch": batch_runs(other.base, same[0], plans, args.runs, max(args.repeats // 10, 5))}
+        finally:
+            other.stop()
 
     sim = json.loads(SIM_RESULTS.read_text()) if SIM_RESULTS.is_file() else None
     sim_task = manifest["task"] if sim and manifest["task"] in sim["results"]["tasks"] else "stacking"
@@ -262,7 +331,18 @@ def main() -> None:
         (f"{args.clients} clients x {concurrent['seconds']:.0f} s: requests/s", f"{concurrent['requests_per_s']:.1f}"),
         (f"{args.clients} clients: p50 / p99 ms", f"{concurrent['p50_ms']:.1f} / {concurrent['p99_ms']:.1f}"),
         (f"{args.clients} clients: errors / requests", f"{concurrent['errors']} / {concurrent['requests']}"),
+        ("V2 infer JSON, same image: p50 / p99 ms", f"{v2['json']['p50_ms']:.1f} / {v2['json']['p99_ms']:.1f}"),
+        ("V2 infer binary, same image: p50 / p99 ms", f"{v2['binary']['p50_ms']:.1f} / {v2['binary']['p99_ms']:.1f}"),
     ]
+    for name, res in compare.items():
+        if "concurrent" in res:
+            c = res["concurrent"]
+            rows.append((f"[{name}] {args.clients} clients: req/s, p99 ms, errors",
+                         f"{c['requests_per_s']:.1f}, {c['p99_ms']:.0f}, {c['errors']}"))
+        if "single_same_image" in res:
+            rows.append((f"[{name}] single same image: p50 / p99 ms",
+                         f"{res['single_same_image']['p50_ms']:.1f} / {res['single_same_image']['p99_ms']:.1f}"))
+            rows.append((f"[{name}] batch of {args.batch}: plans/s", f"{res['batch']['plans_per_s']:.0f}"))
     if ratio["execute_over_score"] is not None:
         rows.append((f"simulating ({sim_task}, T=120, frames) / scoring (new image)",
                      f"{ratio['execute_over_score']:.0f}x"))
@@ -288,9 +368,10 @@ def main() -> None:
                    "t_range": [t_min, t_max]},
         "settings": {"T": args.T, "threads": args.threads, "runs": args.runs, "repeats": args.repeats,
                      "batch": args.batch, "clients": args.clients, "seconds": args.seconds,
-                     "image_size_sent": args.image_size},
+                     "image_size_sent": args.image_size, "micro_batch": args.micro_batch},
         "results": {"single_same_image": cached, "single_new_image": uncached, "batch": batch,
-                    "concurrent": concurrent, "sim_ratio": ratio},
+                    "concurrent": concurrent, "v2_single_same_image": v2, "sim_ratio": ratio},
+        "comparisons": compare,
         "targets": TARGETS,
         "targets_applicable": applicable,
         "targets_met": met,

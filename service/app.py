@@ -8,8 +8,10 @@ to a cold model.
 
 Layout of a request: :class:`~service.metrics.MetricsMiddleware` (outermost: counts everything,
 also refusals) -> :class:`~service.guard.RequestGuard` (415/413 before any parsing) -> FastAPI
-(pydantic parsing; 422s converted to the one error shape by :mod:`service.errors`) -> route ->
-:func:`service.deps.score_off_loop` (worker thread, one inference at a time).
+(request bodies parsed by pydantic-core, :mod:`service.routing`; pydantic validation; 422s converted
+to the one error shape by :mod:`service.errors`) -> route -> :func:`service.deps.score_off_loop` ->
+the micro-batcher (:mod:`service.batching`, a task of the lifespan) -> worker thread, one forward
+pass at a time, shared by the requests that queued while the previous one ran.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import anyio.to_thread
 from fastapi import APIRouter, Depends, FastAPI, Request
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse, Response
+from pydantic import BaseModel
 
 from firp.bundle import BundleError
 from service.deps import (
@@ -35,10 +38,12 @@ from service.deps import (
     score_off_loop,
     settings_of,
 )
+from service.batching import MicroBatcher
 from service.errors import error_responses, install_error_handlers
 from service.guard import RequestGuard
 from service.images import ImageLimits, decode_base64_image
 from service.metrics import MetricsMiddleware, ServiceMetrics
+from service.routing import FastJSONRoute
 from service.schemas import (
     BatchScoreRequest,
     BatchScoreResponse,
@@ -52,7 +57,7 @@ from service.schemas import (
 )
 from service.scorer import ModelScores, ServiceModel, set_torch_threads
 from service.settings import ServiceSettings
-from service.v2 import v2_router
+from service.v2 import V2InferRoute, v2_router
 
 __all__ = ["StartupError", "create_app"]
 
@@ -85,17 +90,24 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     if settings.task is not None and settings.task != model.task:
         raise StartupError(f"the bundle at {path} is for task {model.task!r}, but task {settings.task!r} was asked for")
     warmup_ms = await anyio.to_thread.run_sync(model.warm_up)
-    app.state.model = model
-    app.state.phase = "ready"
-    metrics.model_info.labels(model.name, model.version, model.task).set(1)
-    metrics.ready.set(1)
-    log.info("ready: bundle %s version %s (task %s, %d members, T in [%d, %d]), warm-up %.0f ms", model.name,
-             model.version, model.task, model.n_members, model.t_min, model.t_max, warmup_ms)
-    try:
-        yield
-    finally:
-        app.state.phase = "stopping"
-        metrics.ready.set(0)
+    async with anyio.create_task_group() as tasks:
+        if settings.micro_batch:
+            batcher = MicroBatcher(model, settings.micro_batch_max_plans, metrics)
+            await tasks.start(batcher.run)
+            app.state.batcher = batcher
+        app.state.model = model
+        app.state.phase = "ready"
+        metrics.model_info.labels(model.name, model.version, model.task).set(1)
+        metrics.ready.set(1)
+        log.info("ready: bundle %s version %s (task %s, %d members, T in [%d, %d]), warm-up %.0f ms, "
+                 "micro-batching %s", model.name, model.version, model.task, model.n_members, model.t_min,
+                 model.t_max, warmup_ms, "on" if settings.micro_batch else "off")
+        try:
+            yield
+        finally:
+            app.state.phase = "stopping"
+            metrics.ready.set(0)
+            tasks.cancel_scope.cancel()  # the batcher answers what is still queued with a 503
 
 
 def _model_ref(model: ServiceModel) -> ModelRef:
@@ -112,6 +124,13 @@ def _plan_result(scores: ModelScores, i: int) -> dict[str, object]:
     }
 
 
+def _json(body: BaseModel) -> Response:
+    """A response model serialised by pydantic-core directly: FastAPI would validate the model it was
+    just built from again and encode it with ``json.dumps`` (~0.2 ms more per request on the event
+    loop, measured). ``response_model`` on the route still documents the schema."""
+    return Response(body.model_dump_json(), media_type="application/json")
+
+
 def _guarded(settings: ServiceSettings) -> list[Any]:
     """The API key dependency, only when a key is configured: so the OpenAPI schema says whether
     the routes need X-API-Key, truthfully."""
@@ -119,7 +138,7 @@ def _guarded(settings: ServiceSettings) -> list[Any]:
 
 
 def _v1_router(guarded: list[Any]) -> APIRouter:
-    router = APIRouter(prefix="/v1", tags=["scoring"], dependencies=guarded)
+    router = APIRouter(prefix="/v1", tags=["scoring"], dependencies=guarded, route_class=FastJSONRoute)
 
     async def run(request: Request, endpoint: str, image: str, task: str | None, plans: list[Any],
                   fields: list[str]) -> tuple[ServiceModel, ModelScores]:
@@ -134,33 +153,33 @@ def _v1_router(guarded: list[Any]) -> APIRouter:
 
     @router.post("/score", response_model=ScoreResponse, responses=_POST_ERRORS,
                  summary="Score one plan for one initial image")
-    async def score(body: ScoreRequest, request: Request) -> ScoreResponse:
+    async def score(body: ScoreRequest, request: Request) -> Response:
         start = time.perf_counter()
         model, scores = await run(request, "/v1/score", body.image, body.task, [body.plan], ["plan"])
         attention = scores.attention[0]
-        return ScoreResponse(
+        return _json(ScoreResponse(
             **_plan_result(scores, 0),
             threshold=scores.threshold,
             attention=None if attention is None else attention.tolist(),
             model=_model_ref(model),
             request_id=body.request_id,
             elapsed_ms=(time.perf_counter() - start) * 1000.0,
-        )
+        ))
 
     @router.post("/score/batch", response_model=BatchScoreResponse, responses=_POST_ERRORS,
                  summary="Score N candidate plans for one initial image in one call")
-    async def score_batch(body: BatchScoreRequest, request: Request) -> BatchScoreResponse:
+    async def score_batch(body: BatchScoreRequest, request: Request) -> Response:
         start = time.perf_counter()
         check_batch_size(len(body.plans), settings_of(request).max_batch, "plans")
         fields = [f"plans[{i}]" for i in range(len(body.plans))]
         model, scores = await run(request, "/v1/score/batch", body.image, body.task, body.plans, fields)
-        return BatchScoreResponse(
+        return _json(BatchScoreResponse(
             results=[PlanResult(**_plan_result(scores, i)) for i in range(len(body.plans))],
             threshold=scores.threshold,
             model=_model_ref(model),
             request_id=body.request_id,
             elapsed_ms=(time.perf_counter() - start) * 1000.0,
-        )
+        ))
 
     @router.get("/model", response_model=ModelInfo, responses=_GET_ERRORS,
                 summary="The loaded bundle: version, members, metrics, training data, contract, image size")
@@ -211,6 +230,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.metrics = ServiceMetrics()
     app.state.model = None
+    app.state.batcher = None
     app.state.phase = "starting"
     install_error_handlers(app)
     routers = [_health_router(), _v1_router(_guarded(settings)), v2_router(_guarded(settings))]
@@ -218,7 +238,8 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
         app.include_router(router)
     # add_middleware wraps: the last added runs first.
     routes = [r for router in routers for r in router.routes]
-    app.add_middleware(RequestGuard, max_body_bytes=settings.max_body_bytes, routes=routes)
+    binary_routes = [r for r in routes if isinstance(r, V2InferRoute)]  # the binary tensor extension's routes
+    app.add_middleware(RequestGuard, max_body_bytes=settings.max_body_bytes, routes=routes, binary_routes=binary_routes)
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["GET", "POST"],
                            allow_headers=["Content-Type", "X-API-Key"])

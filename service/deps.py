@@ -14,7 +14,7 @@ from fastapi.security import APIKeyHeader
 
 from service.errors import ServiceError
 from service.metrics import ServiceMetrics
-from service.scorer import ModelScores, ServiceModel
+from service.scorer import ModelScores, ScoreJob, ServiceModel
 from service.settings import ServiceSettings
 
 __all__ = ["API_KEY_HEADER", "check_batch_size", "check_task", "image_digest", "metrics_of", "ready_model",
@@ -83,12 +83,19 @@ async def score_off_loop(request: Request, model: ServiceModel, endpoint: str, i
                          load_image: Callable[[], np.ndarray], plans: Sequence[object],
                          fields: Sequence[str]) -> ModelScores:
     """Validate the plans, decode the image if its features are not cached, score: all in the
-    model's worker thread (one at a time), then record the inference metrics."""
+    model's worker thread (one pass at a time), then record the inference metrics. With
+    micro-batching on (:mod:`service.batching`) the job may share its pass with other requests'."""
+    job = ScoreJob(image_key, load_image, plans, fields)
+    batcher = getattr(request.app.state, "batcher", None)
+    if batcher is not None:
+        scores = await batcher.submit(job)
+    else:
+        def work() -> ModelScores:
+            result = model.score_jobs([job])[0]
+            if isinstance(result, BaseException):
+                raise result
+            return result
 
-    def work() -> ModelScores:
-        checked = model.validate_plans(plans, fields)
-        return model.score(image_key, load_image, checked)
-
-    scores = await model.run(work)
+        scores = await model.run(work)
     metrics_of(request).observe_inference(endpoint, scores.inference_s, len(plans), scores.cache_hit)
     return scores

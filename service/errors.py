@@ -96,6 +96,7 @@ def field_from_loc(loc: Sequence[str | int]) -> str:
 def error_responses(*statuses: int) -> dict[int | str, dict[str, object]]:
     """OpenAPI entries documenting the error shape for ``statuses``."""
     text = {
+        400: "the body cannot be framed (binary tensor extension: Inference-Header-Content-Length)",
         401: "X-API-Key missing or wrong (only when an API key is configured)",
         404: "no such model (V2 routes)",
         413: "request body or image too large",

@@ -8,6 +8,12 @@ other bytes with a bare 400. All answers use the service's one error shape.
 
 Only requests that a route will take (path *and* method match) are guarded: a PUT to a POST-only
 path, or any request to an unknown path, goes on to the router for its 405/404, unread.
+
+The V2 inference routes (``binary_routes``) also take the KServe/Triton binary tensor extension:
+a body framed by an ``Inference-Header-Content-Length`` header (a JSON header, then raw tensor
+bytes) may have any content type and is not UTF-8; a body without that header may come without a
+Content-Type (Triton's clients send none) and is then read as JSON. The framing itself is checked
+by the route (:mod:`service.v2`). The size limit holds for every body.
 """
 
 from __future__ import annotations
@@ -20,9 +26,11 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.errors import error_response
 
-__all__ = ["RequestGuard", "is_json_media_type"]
+__all__ = ["BINARY_HEADER", "RequestGuard", "is_json_media_type"]
 
 _BODY_METHODS = ("POST", "PUT", "PATCH")
+#: The binary tensor extension's header: the length of the JSON header at the start of the body.
+BINARY_HEADER = "Inference-Header-Content-Length"
 
 
 def is_json_media_type(content_type: str | None) -> bool:
@@ -36,10 +44,12 @@ def is_json_media_type(content_type: str | None) -> bool:
 class RequestGuard:
     """Pure ASGI middleware: content type and body size for requests that carry a body."""
 
-    def __init__(self, app: ASGIApp, max_body_bytes: int, routes: Sequence[BaseRoute]):
+    def __init__(self, app: ASGIApp, max_body_bytes: int, routes: Sequence[BaseRoute],
+                 binary_routes: Sequence[BaseRoute] = ()):
         self.app = app
         self.max_body_bytes = max_body_bytes
         self.routes = tuple(routes)
+        self.binary_routes = tuple(binary_routes)
 
     def _routed(self, scope: Scope) -> bool:
         return any(route.matches(scope)[0] == Match.FULL for route in self.routes)
@@ -50,7 +60,9 @@ class RequestGuard:
             return
         headers = Headers(scope=scope)
         content_type = headers.get("content-type")
-        if not is_json_media_type(content_type):
+        v2 = any(route.matches(scope)[0] == Match.FULL for route in self.binary_routes)
+        binary = v2 and BINARY_HEADER in headers
+        if not (binary or is_json_media_type(content_type) or (v2 and content_type is None)):
             got = repr(content_type) if content_type else "no Content-Type"
             await error_response(scope, 415, "Content-Type", "media_type",
                                  f"the body must be JSON (Content-Type: application/json), got {got}")(scope, receive, send)
@@ -81,7 +93,8 @@ class RequestGuard:
             more = message.get("more_body", False)
         body = b"".join(chunks)
         try:
-            body.decode("utf-8")
+            if not binary:  # a binary body's JSON header is checked by its route
+                body.decode("utf-8")
         except UnicodeDecodeError as exc:
             await error_response(scope, 422, "body", "json_invalid",
                                  f"the body is not UTF-8 text ({exc.reason} at byte {exc.start})")(scope, receive, send)

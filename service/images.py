@@ -26,7 +26,8 @@ from PIL import Image, UnidentifiedImageError
 from service.errors import ServiceError
 from service.settings import ServiceSettings
 
-__all__ = ["ALLOWED_FORMATS", "ImageLimits", "check_dimensions", "decode_base64_image", "image_from_array"]
+__all__ = ["ALLOWED_FORMATS", "ImageLimits", "check_dimensions", "decode_base64_image", "decode_image_bytes",
+           "image_from_array"]
 
 ALLOWED_FORMATS = ("PNG", "JPEG")
 
@@ -74,6 +75,12 @@ def decode_base64_image(data: str, limits: ImageLimits, field: str = "image") ->
     except (binascii.Error, ValueError):
         raise ServiceError(422, field, "base64", "must be standard base64 (RFC 4648, with padding) of a PNG "
                            "or JPEG file") from None
+    return decode_image_bytes(raw, limits, field)
+
+
+def decode_image_bytes(raw: bytes, limits: ImageLimits, field: str = "image") -> np.ndarray:
+    """A PNG or JPEG file's bytes -> uint8 ``(H, W, 3)`` RGB; the checks of :func:`decode_base64_image`
+    after its base64 step (413 ``max_bytes``, 422 ``format``, ``dimensions``, ``decode``)."""
     if len(raw) > limits.max_bytes:
         raise ServiceError(413, field, "max_bytes", f"the encoded image is larger than {limits.max_bytes} bytes")
     try:

@@ -10,7 +10,9 @@ methods other than the usual seven are ``other``):
 * ``firp_http_requests_total{route,method,status}`` and ``firp_http_request_duration_seconds``;
 * ``firp_http_errors_total{route,status,rule}`` -- every error response by the rule it names;
 * ``firp_inference_duration_seconds{endpoint}`` -- backbone + members only;
-* ``firp_batch_plans{endpoint}`` -- plans per inference call;
+* ``firp_batch_plans{endpoint}`` -- plans per request;
+* ``firp_micro_batch_requests`` -- requests per shared forward pass (micro-batching, see
+  :mod:`service.batching`);
 * ``firp_feature_cache_total{result}`` -- image feature cache hits and misses;
 * ``firp_ready``, ``firp_model_info{name,version,task}`` and in-flight requests.
 """
@@ -33,6 +35,7 @@ UNMATCHED = "<unmatched>"
 _LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.0075, 0.01, 0.015, 0.02, 0.03, 0.04, 0.05, 0.075, 0.1, 0.15, 0.25, 0.5,
                     1.0, 2.5, 5.0, 10.0)
 _BATCH_BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256)
+_MICRO_BATCH_BUCKETS = (1, 2, 3, 4, 6, 8, 12, 16, 32, 64)
 #: Methods kept as labels; any other (a client may send any token) is counted as "other".
 _METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
 
@@ -53,6 +56,8 @@ class ServiceMetrics:
                                    ["endpoint"], buckets=_LATENCY_BUCKETS, registry=r)
         self.batch_plans = Histogram("firp_batch_plans", "Plans scored per inference call", ["endpoint"],
                                      buckets=_BATCH_BUCKETS, registry=r)
+        self.micro_batch = Histogram("firp_micro_batch_requests", "Requests scored together in one forward pass",
+                                     buckets=_MICRO_BATCH_BUCKETS, registry=r)
         self.cache = Counter("firp_feature_cache", "Image feature cache lookups", ["result"], registry=r)
         self.ready = Gauge("firp_ready", "1 when the bundle is loaded and warmed up", registry=r)
         self.model_info = Gauge("firp_model_info", "The loaded bundle (value 1)", ["name", "version", "task"],

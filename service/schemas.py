@@ -276,13 +276,18 @@ class V2RequestInput(_Request):
     shape: list[Annotated[int, Strict()]]
     datatype: str = Field(description="image: UINT8 (H x W x 3, or 1 x H x W x 3) or BYTES (shape [1], a base64 "
                                       "PNG/JPEG); plan: FP32 or FP64 (T x 16, or N x T x 16 for N plans)")
-    parameters: dict[str, Any] | None = None
-    data: list[Any] = Field(description="the tensor's elements in row-major order, flat or nested")
+    parameters: dict[str, Any] | None = Field(
+        None, description="binary_data_size: the tensor's elements are sent as raw bytes (little-endian, row-major) "
+                          "after the JSON header instead of in `data` (binary tensor extension; the request then "
+                          "carries an Inference-Header-Content-Length header)")
+    data: list[Any] | None = Field(None, description="the tensor's elements in row-major order, flat or nested; "
+                                                     "omitted when parameters.binary_data_size is given")
 
 
 class V2RequestOutput(_Request):
     name: str
-    parameters: dict[str, Any] | None = None
+    parameters: dict[str, Any] | None = Field(
+        None, description="binary_data: true returns this output as raw bytes after the JSON header")
 
 
 class V2InferRequest(_Request):
@@ -296,7 +301,8 @@ class V2InferRequest(_Request):
     }]})
 
     id: str | None = Field(None, max_length=128)
-    parameters: dict[str, Any] | None = None
+    parameters: dict[str, Any] | None = Field(
+        None, description="binary_data_output: true returns every output not asking otherwise as raw bytes")
     inputs: list[V2RequestInput] = Field(json_schema_extra={"minItems": 1})
     outputs: list[V2RequestOutput] | None = None
 
@@ -305,7 +311,9 @@ class V2ResponseOutput(BaseModel):
     name: str
     shape: list[int]
     datatype: str
-    data: list[Any]
+    parameters: dict[str, Any] | None = Field(
+        None, description="binary_data_size: the output's bytes follow the JSON header (binary tensor extension)")
+    data: list[Any] | None = Field(None, description="row-major elements; omitted for a binary output")
 
 
 class V2InferResponse(BaseModel):

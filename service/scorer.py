@@ -2,21 +2,22 @@
 
 Why a layer between the routes and :class:`firp.ensemble.EnsembleScorer`:
 
-* **One inference at a time, off the event loop.** The routes run :meth:`ServiceModel.run` in a
-  worker thread through an ``anyio.CapacityLimiter`` of one token. One token because the vmapped
-  members go through ``torch.func.functional_call``, which swaps parameters on a shared module for
-  the duration of a call: two threads inside it at once would read each other's weights. CPU
-  parallelism comes from torch's intra-op threads (``threads`` setting) and, beyond one core's
-  worth, from more processes. Image decoding and plan validation run inside the same token: they
-  cost well under a millisecond for a camera frame, less than a second thread hop would.
+* **One forward pass at a time, off the event loop.** Passes run in a worker thread through an
+  ``anyio.CapacityLimiter`` of one token: with ``strategy="vmap"`` the members go through
+  ``torch.func.functional_call``, which swaps parameters on a shared module for the duration of a
+  call, so two threads inside it at once would read each other's weights (the default fused path
+  holds plain tensors and would not mind, but one token also keeps the one core the service is
+  sized for free of contention). CPU parallelism comes from torch's intra-op threads (``threads``
+  setting) and, beyond that, from more processes. Image decoding and plan validation run inside
+  the same token: they cost well under a millisecond for a camera frame.
+* **Several requests per pass.** :meth:`ServiceModel.score_jobs` scores the plans of several
+  requests (each with its own scene) in one pass per plan length; :mod:`service.batching` feeds it
+  the requests that queued while the previous pass ran (micro-batching, a setting).
 * **Backbone features cached per image.** A planner scores several plans (or calls several times)
   for the same initial image; the frozen backbone is a pure function of the image, so its features
   are kept in a small LRU keyed by the sha256 of the request's image bytes. A hit skips both the
-  PNG decode and the backbone (EfficientNet-Lite0 at 224 px: ~50 ms on one core).
+  PNG decode and the backbone (EfficientNet-Lite0 at the shipped 84 px: ~11-15 ms on one core).
 * **Failure step.** Defined here from the members' mean attention (see :func:`failure_steps`).
-
-No micro-batching across requests: each request is one batched forward pass over its own plans
-(the members vmapped or looped, all plans at once); concurrent requests queue for the token.
 """
 
 from __future__ import annotations
@@ -52,7 +53,8 @@ from firp.contract import (
 )
 from firp.ensemble import EnsembleScorer
 
-__all__ = ["FeatureCache", "ModelScores", "ServiceModel", "failure_steps", "neutral_plan", "set_torch_threads"]
+__all__ = ["FeatureCache", "ModelScores", "ScoreJob", "ServiceModel", "failure_steps", "neutral_plan",
+           "set_torch_threads"]
 
 log = logging.getLogger("service")
 
@@ -100,6 +102,20 @@ class FeatureCache:
 
     def __len__(self) -> int:
         return len(self._items)
+
+
+@dataclass(frozen=True)
+class ScoreJob:
+    """One request's scoring work: its image (cache key + decoder) and its plans.
+
+    ``fields`` names each plan for validation errors (``plan``, ``plans[3]``); None means the plans
+    were validated already.
+    """
+
+    image_key: bytes
+    load_image: Callable[[], np.ndarray]
+    plans: Sequence[object]
+    fields: Sequence[str] | None
 
 
 @dataclass(frozen=True)
@@ -207,8 +223,9 @@ class ServiceModel:
         return await anyio.to_thread.run_sync(fn, limiter=self.limiter)
 
     def warm_up(self) -> float:
-        """Score a neutral plan through both member paths (vmap for few plans, loop for many) so
-        that the first real request does not pay for lazy initialisation; returns milliseconds.
+        """Score a neutral plan through both member paths (the ensemble's plan for at most
+        ``AUTO_VMAP_MAX_N`` plans and the one above) so that the first real request does not pay for
+        lazy initialisation; returns milliseconds.
         Fails if the bundle produces non-finite scores."""
         t = min(max(DEFAULT_T, self.t_min), self.t_max)
         image = np.zeros((self.image_size, self.image_size, 3), dtype=np.uint8)
@@ -236,35 +253,72 @@ class ServiceModel:
         it and is only called on a cache miss. Plans of equal length go through the members as one
         batch; a request mixing lengths gets one batch per length, results in request order.
         """
-        feats = self.cache.get(image_key)
-        hit = feats is not None
+        result = self.score_jobs([ScoreJob(image_key, load_image, plans, None)])[0]
+        if isinstance(result, BaseException):
+            raise result
+        return result
+
+    def score_jobs(self, jobs: Sequence[ScoreJob]) -> list[ModelScores | Exception]:
+        """Score several requests' plans in as few forward passes as possible (micro-batching).
+
+        Each job is validated (unless its ``fields`` is None: already validated) and its image
+        features looked up or computed on its own, so a bad plan or image fails only its own job
+        (its entry is the exception); then every plan of every good job goes through the members
+        in one call per plan length, each plan with its own scene's features. ``inference_s`` of
+        each job is the time of the whole pass it shared (backbone of the images it needed +
+        members).
+        """
+        out: list[ModelScores | Exception | None] = [None] * len(jobs)
+        checked: dict[int, list[np.ndarray]] = {}
+        for j, job in enumerate(jobs):
+            try:
+                checked[j] = list(job.plans) if job.fields is None else self.validate_plans(job.plans, job.fields)
+            except Exception as exc:  # noqa: BLE001 - the job's own error (422 ...), reported to it alone
+                out[j] = exc
         start = time.perf_counter()
-        if feats is None:
-            image = load_image()
-            start = time.perf_counter()
-            feats = self.scorer.image_features(image)
-            self.cache.put(image_key, feats)
-        n = len(plans)
-        probs = np.empty(n)
-        spread = np.empty(n)
-        success = np.empty(n, dtype=bool)
-        members = np.empty((n, self.n_members))
-        attention: list[np.ndarray | None] = [None] * n
-        by_length: dict[int, list[int]] = {}
-        for i, p in enumerate(plans):
-            by_length.setdefault(p.shape[0], []).append(i)
-        for idx in by_length.values():
-            result = self.scorer.score_features(feats, np.stack([plans[i] for i in idx]))
-            probs[idx] = result.probabilities
-            spread[idx] = result.spread
-            success[idx] = result.success
-            members[idx] = result.member_probabilities.T
-            if result.weights is not None:
-                for j, i in enumerate(idx):
-                    attention[i] = result.weights[j]
-        elapsed = time.perf_counter() - start
-        steps = failure_steps(attention, success.tolist())
-        return ModelScores(probs, members, spread, success, steps, attention, self.scorer.threshold, elapsed, hit)
+        decode_s = 0.0
+        feats: dict[int, Tensor] = {}
+        hits: dict[int, bool] = {}
+        for j in checked:
+            key = jobs[j].image_key
+            cached = self.cache.get(key)
+            hits[j] = cached is not None
+            if cached is None:
+                t0 = time.perf_counter()
+                try:
+                    image = jobs[j].load_image()
+                except Exception as exc:  # noqa: BLE001 - a bad image fails its own job only
+                    out[j] = exc
+                    continue
+                finally:
+                    decode_s += time.perf_counter() - t0
+                cached = self.scorer.image_features(image)
+                self.cache.put(key, cached)
+            feats[j] = cached
+        # (job, plan index) of every plan to score, grouped by plan length
+        by_length: dict[int, list[tuple[int, int]]] = {}
+        for j in feats:
+            for i, p in enumerate(checked[j]):
+                by_length.setdefault(p.shape[0], []).append((j, i))
+        n_members = self.n_members
+        parts = {j: (np.empty(len(checked[j])), np.empty(len(checked[j])), np.empty(len(checked[j]), dtype=bool),
+                     np.empty((len(checked[j]), n_members)), [None] * len(checked[j])) for j in feats}
+        for rows in by_length.values():
+            keys = {jobs[j].image_key for j, _ in rows}
+            # one scene: one feature row for all plans (fused members project it once)
+            f = feats[rows[0][0]] if len(keys) == 1 else torch.cat([feats[j] for j, _ in rows])
+            result = self.scorer.score_features(f, np.stack([checked[j][i] for j, i in rows]))
+            for r, (j, i) in enumerate(rows):
+                probs, spread, success, members, attention = parts[j]
+                probs[i], spread[i], success[i] = result.probabilities[r], result.spread[r], result.success[r]
+                members[i] = result.member_probabilities[:, r]
+                attention[i] = None if result.weights is None else result.weights[r]
+        elapsed = time.perf_counter() - start - decode_s
+        for j, (probs, spread, success, members, attention) in parts.items():
+            steps = failure_steps(attention, success.tolist())
+            out[j] = ModelScores(probs, members, spread, success, steps, attention, self.scorer.threshold, elapsed,
+                                 hits[j])
+        return out  # type: ignore[return-value]
 
 
 def set_torch_threads(threads: int) -> None:

@@ -58,6 +58,9 @@ class ServiceSettings(BaseSettings):
     max_aspect_ratio: float = Field(4.0, ge=1.0)
     max_batch: int = Field(64, ge=1, le=4096, description="most plans in one /v1/score/batch or V2 call")
     feature_cache_size: int = Field(64, ge=0, description="images whose backbone features are kept (0: off)")
+    micro_batch: bool = Field(True, description="score concurrent requests together in one forward pass (requests "
+                              "that queued while the previous pass ran; a lone request is never delayed)")
+    micro_batch_max_plans: int = Field(64, ge=1, le=4096, description="most plans in one shared forward pass")
     cors_origins: list[str] = Field(default_factory=list, description="CORS allow-list; empty: no CORS")
     log_level: str = "info"
     access_log: bool = True

@@ -16,13 +16,31 @@ The model, as the protocol sees it (``GET /v2/models/{name}``; ``name`` is the b
 Tensor data may be flat (row-major, as the protocol specifies) or nested. Health routes stay open;
 the others need the API key when one is configured. Errors use the service's one error shape (the
 protocol's ``{"error": "<message>"}`` is a string there; clients read ``error`` either way).
-Extensions (binary tensor data, shared memory) are not implemented.
+
+**Binary tensor extension** (``binary_tensor_data``, as Triton defines it), because Triton's and
+KServe's HTTP clients use it by default (``tritonclient.http`` sends every input as binary unless
+told otherwise, and asks for binary outputs): the body is a JSON header of
+``Inference-Header-Content-Length`` bytes followed by the raw bytes of every input whose
+``parameters.binary_data_size`` is set, in input order (little-endian, row-major; a ``BYTES``
+element is a 4-byte little-endian length and its bytes). A binary ``BYTES`` image holds the PNG or
+JPEG file itself (or, if it does not start with a PNG/JPEG signature, its base64 text). Outputs are
+binary when they ask for ``parameters.binary_data: true``, or when the request's
+``parameters.binary_data_output`` is true and they do not ask otherwise; the answer is then framed
+the same way (``Inference-Header-Content-Length`` header, ``application/octet-stream``). Broken
+framing is refused before anything is decoded: a header length that is not a number or exceeds the
+body (400 ``inference_header_length``), sizes that do not match the shape and datatype or do not
+add up to the body (422 ``binary_data_size``), ``data`` and ``binary_data_size`` on one input (422
+``binary_data``). Shared-memory extensions are not implemented.
 """
 
 from __future__ import annotations
 
+import json
 import math
+import struct
 import time
+from collections.abc import Callable, Coroutine
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -38,7 +56,8 @@ from service.deps import (
     settings_of,
 )
 from service.errors import ServiceError, error_responses
-from service.images import ImageLimits, check_dimensions, decode_base64_image, image_from_array
+from service.guard import BINARY_HEADER
+from service.images import ImageLimits, check_dimensions, decode_base64_image, decode_image_bytes, image_from_array
 from service.schemas import (
     V2InferRequest,
     V2InferResponse,
@@ -47,20 +66,33 @@ from service.schemas import (
     V2ModelReady,
     V2Ready,
     V2RequestInput,
-    V2ResponseOutput,
     V2ServerMetadata,
     V2TensorMetadata,
 )
+from service.routing import FastJSONRoute
 from service.scorer import ModelScores, ServiceModel
 
-__all__ = ["OUTPUT_NAMES", "v2_router"]
+__all__ = ["BINARY_EXTENSION", "OUTPUT_NAMES", "V2InferRoute", "v2_router"]
 
 SERVER_NAME = "firp-service"
 SERVER_VERSION = "1.0.0"
 PLATFORM = "firp_ensemble"
 OUTPUT_NAMES = ("score", "success", "spread", "member_scores", "failure_step", "attention")
+#: The extension's name in the server metadata (Triton's name for it).
+BINARY_EXTENSION = "binary_tensor_data"
+#: Where :class:`V2InferRoute` leaves a binary request's tensor bytes for the endpoint.
+SCOPE_BINARY = "firp.v2.binary"
+#: Element sizes of the datatypes this model reads or writes as binary (little-endian).
+_DTYPES = {"UINT8": np.dtype("u1"), "FP32": np.dtype("<f4"), "FP64": np.dtype("<f8"), "INT64": np.dtype("<i8"),
+           "BOOL": np.dtype("?")}
+_IMAGE_SIGNATURES = (b"\x89PNG\r\n\x1a\n", b"\xff\xd8\xff")
 
-_INFER_ERRORS = error_responses(401, 404, 413, 415, 422, 503)
+_INFER_RESPONSES: dict[int | str, dict[str, Any]] = {
+    200: {"description": "JSON, or with any binary output the binary tensor extension's framing: a JSON header of "
+                         "Inference-Header-Content-Length bytes, then the binary outputs' bytes",
+          "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}},
+    **error_responses(400, 401, 404, 413, 415, 422, 503),
+}
 _GET_ERRORS = error_responses(401, 404, 503)
 
 
@@ -92,33 +124,180 @@ def _metadata(model: ServiceModel) -> V2ModelMetadata:
 
 
 # ------------------------------------------------------------------------------------------
+# binary framing (the route class) and the binary section of a request
+# ------------------------------------------------------------------------------------------
+
+
+def _header_length(declared: str, body_size: int) -> int:
+    """The ``Inference-Header-Content-Length`` value, checked against the body (400 if broken)."""
+    if not declared.strip().isdigit():
+        raise ServiceError(400, BINARY_HEADER, "inference_header_length",
+                           f"{BINARY_HEADER} must be a non-negative integer, got {declared!r}")
+    n = int(declared)
+    if n > body_size:
+        raise ServiceError(400, BINARY_HEADER, "inference_header_length",
+                           f"{BINARY_HEADER} is {n} but the body has only {body_size} bytes")
+    return n
+
+
+class V2InferRoute(FastJSONRoute):
+    """The V2 inference routes: unframe a binary-extension body before FastAPI reads it.
+
+    A body with ``Inference-Header-Content-Length`` is split into its JSON header, which FastAPI
+    then parses and validates as any JSON body (same errors, same OpenAPI schema), and its binary
+    section, left in the scope for the endpoint. A body without the header is JSON; a missing
+    Content-Type (Triton's clients send none) is read as JSON too. The guard
+    (:class:`service.guard.RequestGuard`) has already bounded the body's size.
+    """
+
+    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        handler = super().get_route_handler()
+
+        async def route_handler(request: Request) -> Response:
+            declared = request.headers.get(BINARY_HEADER)
+            if declared is None and request.headers.get("content-type") is not None:
+                return await handler(request)
+            body = await request.body()
+            binary = None
+            if declared is not None:
+                n = _header_length(declared, len(body))
+                body, binary = body[:n], body[n:]
+                try:
+                    body.decode("utf-8")
+                except UnicodeDecodeError as exc:
+                    raise ServiceError(422, "body", "json_invalid", f"the JSON header is not UTF-8 text ({exc.reason} "
+                                       f"at byte {exc.start})") from None
+            scope = dict(request.scope)
+            scope[SCOPE_BINARY] = binary
+            scope["headers"] = [(k, v) for k, v in request.scope["headers"] if k not in (b"content-type", b"content-length")]
+            scope["headers"] += [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
+            sent = False
+
+            async def receive() -> dict[str, Any]:
+                nonlocal sent
+                if not sent:
+                    sent = True
+                    return {"type": "http.request", "body": body, "more_body": False}
+                return await request.receive()
+
+            return await handler(Request(scope, receive))
+
+        return route_handler
+
+
+@dataclass
+class _Binary:
+    """The binary section of a request, handed out input by input in order."""
+
+    data: bytes | None  # None: the request had no Inference-Header-Content-Length
+    offset: int = 0
+
+    def take(self, inp: V2RequestInput, field: str) -> bytes | None:
+        """This input's raw bytes, or None if it carries its elements in ``data``."""
+        params = inp.parameters or {}
+        size = params.get("binary_data_size")
+        if size is None:
+            if inp.data is None:
+                raise ServiceError(422, f"{field}.data", "binary_data",
+                                   "an input needs data, or parameters.binary_data_size with its bytes after the header")
+            return None
+        where = f"{field}.parameters.binary_data_size"
+        if isinstance(size, bool) or not isinstance(size, int) or size < 0:
+            raise ServiceError(422, where, "binary_data_size", f"must be a non-negative integer, got {size!r}")
+        if inp.data is not None:
+            raise ServiceError(422, f"{field}.data", "binary_data", "an input has either data or binary_data_size, not both")
+        if self.data is None:
+            raise ServiceError(422, where, "binary_data_size",
+                               f"binary data needs the {BINARY_HEADER} header (the JSON header's length in bytes)")
+        if self.offset + size > len(self.data):
+            raise ServiceError(422, where, "binary_data_size",
+                               f"{size} bytes asked for at offset {self.offset} of the binary data, which has only "
+                               f"{len(self.data)} bytes")
+        raw = self.data[self.offset: self.offset + size]
+        self.offset += size
+        return raw
+
+    def check_consumed(self) -> None:
+        if self.data is not None and self.offset != len(self.data):
+            raise ServiceError(422, "inputs", "binary_data_size",
+                               f"the inputs' binary_data_size add up to {self.offset} bytes, but {len(self.data)} bytes "
+                               "follow the JSON header")
+
+
+def _bytes_elements(raw: bytes, count: int, field: str) -> list[bytes]:
+    """A binary BYTES tensor: ``count`` elements, each a 4-byte little-endian length and its bytes."""
+    out, offset = [], 0
+    for i in range(count):
+        if offset + 4 > len(raw):
+            raise ServiceError(422, f"{field}.parameters.binary_data_size", "binary_data_size",
+                               f"BYTES element {i}: no 4-byte length at offset {offset} of {len(raw)} bytes")
+        (n,) = struct.unpack_from("<I", raw, offset)
+        offset += 4
+        if offset + n > len(raw):
+            raise ServiceError(422, f"{field}.parameters.binary_data_size", "binary_data_size",
+                               f"BYTES element {i} declares {n} bytes but only {len(raw) - offset} follow")
+        out.append(raw[offset: offset + n])
+        offset += n
+    if offset != len(raw):
+        raise ServiceError(422, f"{field}.parameters.binary_data_size", "binary_data_size",
+                           f"{len(raw) - offset} bytes left over after {count} BYTES element(s)")
+    return out
+
+
+# ------------------------------------------------------------------------------------------
 # tensors in
 # ------------------------------------------------------------------------------------------
 
 
-def _tensor(inp: V2RequestInput, field: str, kinds: str, what: str) -> np.ndarray:
-    """``inp.data`` as an array of ``inp.shape``; elements must be of numpy kinds ``kinds``."""
+def _check_shape(inp: V2RequestInput, field: str) -> None:
     if any(d < 0 for d in inp.shape):
         raise ServiceError(422, f"{field}.shape", "shape", f"dimensions must be >= 0, got {inp.shape}")
+
+
+def _tensor(inp: V2RequestInput, field: str, kinds: str, what: str, raw: bytes | None = None) -> np.ndarray:
+    """The input's elements as an array of ``inp.shape``: from ``raw`` (binary, read as the
+    datatype's little-endian type) or from ``inp.data`` (JSON; elements of numpy kinds ``kinds``)."""
+    _check_shape(inp, field)
+    count = math.prod(inp.shape)
+    if raw is not None:
+        dtype = _DTYPES[inp.datatype]
+        if len(raw) != count * dtype.itemsize:
+            raise ServiceError(422, f"{field}.parameters.binary_data_size", "binary_data_size",
+                               f"shape {inp.shape} of {inp.datatype} needs {count * dtype.itemsize} bytes, "
+                               f"binary_data_size is {len(raw)}")
+        return np.frombuffer(raw, dtype=dtype).reshape(inp.shape)
     try:
         arr = np.asarray(inp.data)
     except (ValueError, TypeError, OverflowError, RecursionError):
         raise ServiceError(422, f"{field}.data", "data", "data must be a (flat or nested) array of numbers") from None
     if arr.dtype.kind not in kinds:
         raise ServiceError(422, f"{field}.data", "data", f"data must hold {what}, got elements of dtype {arr.dtype}")
-    if arr.size != math.prod(inp.shape):
+    if arr.size != count:
         raise ServiceError(422, f"{field}.data", "shape",
-                           f"shape {inp.shape} needs {math.prod(inp.shape)} elements, data has {arr.size}")
+                           f"shape {inp.shape} needs {count} elements, data has {arr.size}")
     return arr.reshape(inp.shape)
 
 
-def _image_input(inp: V2RequestInput, field: str, limits: ImageLimits) -> tuple[bytes, Any]:
-    """(cache key, loader) for the image tensor; cheap checks now, decoding in the loader."""
+def _image_input(inp: V2RequestInput, field: str, limits: ImageLimits, raw: bytes | None) -> tuple[bytes, Any]:
+    """(cache key, loader) for the image tensor (``raw``: its binary data, if sent so); cheap checks
+    now, decoding in the loader."""
     if inp.datatype == "BYTES":
-        if inp.shape not in ([1], [1, 1]) or len(inp.data) != 1 or not isinstance(inp.data[0], str):
-            raise ServiceError(422, f"{field}.data", "shape",
-                               "a BYTES image is shape [1] holding one base64 PNG/JPEG string")
-        text: str = inp.data[0]
+        if inp.shape not in ([1], [1, 1]):
+            raise ServiceError(422, f"{field}.data", "shape", "a BYTES image is shape [1] holding one PNG/JPEG")
+        if raw is not None:
+            (element,) = _bytes_elements(raw, 1, field)
+            if element.startswith(_IMAGE_SIGNATURES):
+                return image_digest(b"file", element), lambda: decode_image_bytes(element, limits, field)
+            try:
+                text = element.decode("ascii")
+            except UnicodeDecodeError:
+                raise ServiceError(422, field, "format", "a binary BYTES image is a PNG or JPEG file, or its base64 "
+                                   "text") from None
+        else:
+            if inp.data is None or len(inp.data) != 1 or not isinstance(inp.data[0], str):
+                raise ServiceError(422, f"{field}.data", "shape",
+                                   "a BYTES image is shape [1] holding one base64 PNG/JPEG string")
+            text = inp.data[0]
         return image_digest(b"b64", text.encode("utf-8", "surrogatepass")), lambda: decode_base64_image(text, limits, field)
     if inp.datatype != "UINT8":
         raise ServiceError(422, f"{field}.datatype", "datatype", f"image must be UINT8 or BYTES, got {inp.datatype!r}")
@@ -126,15 +305,15 @@ def _image_input(inp: V2RequestInput, field: str, limits: ImageLimits) -> tuple[
     if len(shape) != 3 or shape[2] != 3:
         raise ServiceError(422, f"{field}.shape", "shape", f"an image is [H, W, 3] or [1, H, W, 3], got {inp.shape}")
     check_dimensions(shape[1], shape[0], limits, field)  # before touching the data
-    arr = _tensor(inp, field, "iu", "integers")
-    if arr.size and (arr.min() < 0 or arr.max() > 255):
+    arr = _tensor(inp, field, "iu", "integers", raw)
+    if arr.dtype != np.uint8 and arr.size and (arr.min() < 0 or arr.max() > 255):
         raise ServiceError(422, f"{field}.data", "range", "UINT8 values must lie in [0, 255]")
     pixels = image_from_array(arr.reshape(shape).astype(np.uint8), limits, field)
     key = image_digest(b"px", str(pixels.shape).encode(), pixels.tobytes())
     return key, lambda: pixels
 
 
-def _plan_input(inp: V2RequestInput, field: str, max_batch: int) -> tuple[list[np.ndarray], list[str]]:
+def _plan_input(inp: V2RequestInput, field: str, max_batch: int, raw: bytes | None) -> tuple[list[np.ndarray], list[str]]:
     if inp.datatype not in ("FP32", "FP64"):
         raise ServiceError(422, f"{field}.datatype", "datatype", f"plan must be FP32 or FP64, got {inp.datatype!r}")
     if len(inp.shape) == 2:
@@ -146,7 +325,7 @@ def _plan_input(inp: V2RequestInput, field: str, max_batch: int) -> tuple[list[n
     else:
         raise ServiceError(422, f"{field}.shape", "shape", f"a plan is [T, {PLAN_WIDTH}] or [N, T, {PLAN_WIDTH}], "
                            f"got {inp.shape}")
-    arr = _tensor(inp, field, "iuf", "numbers").astype(np.float64)
+    arr = _tensor(inp, field, "iuf", "numbers", raw).astype(np.float64)
     plans = [arr] if n == 1 and arr.ndim == 2 else list(arr)
     return plans, fields
 
@@ -156,28 +335,56 @@ def _plan_input(inp: V2RequestInput, field: str, max_batch: int) -> tuple[list[n
 # ------------------------------------------------------------------------------------------
 
 
-def _outputs(scores: ModelScores, wanted: list[str] | None) -> list[V2ResponseOutput]:
-    n = len(scores.probabilities)
-    f32 = lambda a: np.asarray(a, dtype=np.float32).ravel().tolist()  # noqa: E731
+def _output_arrays(scores: ModelScores) -> dict[str, tuple[str, np.ndarray]]:
+    """Every output this call has: name -> (datatype, array)."""
     out = {
-        "score": V2ResponseOutput(name="score", shape=[n], datatype="FP32", data=f32(scores.probabilities)),
-        "success": V2ResponseOutput(name="success", shape=[n], datatype="BOOL", data=scores.success.tolist()),
-        "spread": V2ResponseOutput(name="spread", shape=[n], datatype="FP32", data=f32(scores.spread)),
-        "member_scores": V2ResponseOutput(name="member_scores", shape=list(scores.member_probabilities.shape),
-                                          datatype="FP32", data=f32(scores.member_probabilities)),
-        "failure_step": V2ResponseOutput(name="failure_step", shape=[n], datatype="INT64",
-                                         data=[-1 if s is None else s for s in scores.failure_steps]),
+        "score": ("FP32", np.asarray(scores.probabilities, dtype=np.float32)),
+        "success": ("BOOL", np.asarray(scores.success, dtype=bool)),
+        "spread": ("FP32", np.asarray(scores.spread, dtype=np.float32)),
+        "member_scores": ("FP32", np.asarray(scores.member_probabilities, dtype=np.float32)),
+        "failure_step": ("INT64", np.array([-1 if s is None else s for s in scores.failure_steps], dtype=np.int64)),
     }
     if all(a is not None for a in scores.attention):
-        att = np.stack(scores.attention)  # one request = one plan length, so this stacks
-        out["attention"] = V2ResponseOutput(name="attention", shape=list(att.shape), datatype="FP32", data=f32(att))
-    names = wanted if wanted is not None else [k for k in OUTPUT_NAMES if k in out]
-    return [out[k] for k in names if k in out]
+        out["attention"] = ("FP32", np.stack(scores.attention).astype(np.float32))  # one request = one plan length
+    return out
+
+
+def _binary_flag(params: dict[str, Any] | None, key: str, field: str) -> bool | None:
+    """``params[key]`` if given (must be a boolean), else None; ``field`` names the owner ("" = the request)."""
+    value = (params or {}).get(key)
+    if value is not None and not isinstance(value, bool):
+        where = f"{field}.parameters.{key}" if field else f"parameters.{key}"
+        raise ServiceError(422, where, key, f"must be true or false, got {value!r}")
+    return value
+
+
+def _response(head: dict[str, Any], scores: ModelScores, wanted: list[tuple[str, bool]]) -> Response:
+    """The infer answer: JSON, or (any binary output) a JSON header + the outputs' bytes."""
+    arrays = _output_arrays(scores)
+    outputs, chunks = [], []
+    for name, binary in wanted:
+        if name not in arrays:
+            continue  # attention of members without attention: nothing to send
+        datatype, arr = arrays[name]
+        entry: dict[str, Any] = {"name": name, "shape": list(arr.shape), "datatype": datatype}
+        if binary:
+            raw = np.ascontiguousarray(arr, dtype=_DTYPES[datatype]).tobytes()
+            entry["parameters"] = {"binary_data_size": len(raw)}
+            chunks.append(raw)
+        else:
+            entry["data"] = arr.ravel().tolist()
+        outputs.append(entry)
+    head["outputs"] = outputs
+    if not chunks:
+        return JSONResponse(head)
+    header = json.dumps(head, ensure_ascii=False, allow_nan=False, separators=(",", ":")).encode("utf-8")
+    return Response(header + b"".join(chunks), media_type="application/octet-stream",
+                    headers={BINARY_HEADER: str(len(header))})
 
 
 def v2_router(guarded: list[Any]) -> APIRouter:
     """The V2 routes; ``guarded`` (the API key dependency, or nothing) on all but the health routes."""
-    router = APIRouter(prefix="/v2", tags=["open inference protocol (KServe V2)"])
+    router = APIRouter(prefix="/v2", tags=["open inference protocol (KServe V2)"], route_class=FastJSONRoute)
 
     @router.get("/health/live", response_model=V2Live, summary="V2 server live")
     async def live() -> V2Live:
@@ -192,7 +399,7 @@ def v2_router(guarded: list[Any]) -> APIRouter:
     @router.get("", response_model=V2ServerMetadata, dependencies=guarded, responses=error_responses(401),
                 summary="V2 server metadata")
     async def server_metadata() -> V2ServerMetadata:
-        return V2ServerMetadata(name=SERVER_NAME, version=SERVER_VERSION, extensions=[])
+        return V2ServerMetadata(name=SERVER_NAME, version=SERVER_VERSION, extensions=[BINARY_EXTENSION])
 
     @router.get("/models/{name}", response_model=V2ModelMetadata, dependencies=guarded, responses=_GET_ERRORS,
                 summary="V2 model metadata")
@@ -209,7 +416,7 @@ def v2_router(guarded: list[Any]) -> APIRouter:
     async def model_ready(name: str, request: Request) -> V2ModelReady:
         return V2ModelReady(name=_named_model(request, name).name, ready=True)
 
-    async def infer(name: str, version: str | None, body: V2InferRequest, request: Request) -> V2InferResponse:
+    async def infer(name: str, version: str | None, body: V2InferRequest, request: Request) -> Response:
         start = time.perf_counter()
         model = _named_model(request, name, version)
         settings = settings_of(request)
@@ -225,32 +432,42 @@ def v2_router(guarded: list[Any]) -> APIRouter:
         for needed in ("image", "plan"):
             if needed not in seen:
                 raise ServiceError(422, "inputs", "missing_input", f"input {needed!r} is missing")
-        wanted = None
+        default_binary = _binary_flag(body.parameters, "binary_data_output", "") or False
         if body.outputs is not None:
-            wanted = []
+            wanted: list[tuple[str, bool]] = []
             for i, o in enumerate(body.outputs):
                 if o.name not in OUTPUT_NAMES:
                     raise ServiceError(422, f"outputs[{i}].name", "unknown_output",
                                        f"outputs are {', '.join(OUTPUT_NAMES)}; got {o.name!r}")
-                wanted.append(o.name)
+                flag = _binary_flag(o.parameters, "binary_data", f"outputs[{i}]")
+                wanted.append((o.name, default_binary if flag is None else flag))
+        else:
+            wanted = [(name, default_binary) for name in OUTPUT_NAMES]
+        # every input's binary data, cut in request order (the extension's order), all of it used
+        binary = _Binary(request.scope.get(SCOPE_BINARY))
+        raws = [binary.take(inp, f"inputs[{i}]") for i, inp in enumerate(body.inputs)]
+        binary.check_consumed()
         i_img, i_plan = seen["image"], seen["plan"]
-        key, load_image = _image_input(body.inputs[i_img], f"inputs[{i_img}]", limits)
-        plans, fields = _plan_input(body.inputs[i_plan], f"inputs[{i_plan}]", settings.max_batch)
+        key, load_image = _image_input(body.inputs[i_img], f"inputs[{i_img}]", limits, raws[i_img])
+        plans, fields = _plan_input(body.inputs[i_plan], f"inputs[{i_plan}]", settings.max_batch, raws[i_plan])
         scores = await score_off_loop(request, model, "/v2/infer", key, load_image, plans, fields)
-        return V2InferResponse(
-            model_name=model.name, model_version=model.version, id=body.id,
-            parameters={"threshold": scores.threshold, "elapsed_ms": (time.perf_counter() - start) * 1000.0},
-            outputs=_outputs(scores, wanted),
-        )
+        head: dict[str, Any] = {
+            "model_name": model.name, "model_version": model.version, "id": body.id,
+            "parameters": {"threshold": scores.threshold, "elapsed_ms": (time.perf_counter() - start) * 1000.0},
+        }
+        return _response(head, scores, wanted)
 
-    @router.post("/models/{name}/infer", response_model=V2InferResponse, dependencies=guarded,
-                 responses=_INFER_ERRORS, summary="V2 inference: score plans for an image")
-    async def infer_latest(name: str, body: V2InferRequest, request: Request) -> V2InferResponse:
+    async def infer_latest(name: str, body: V2InferRequest, request: Request) -> Response:
         return await infer(name, None, body, request)
 
-    @router.post("/models/{name}/versions/{version}/infer", response_model=V2InferResponse, dependencies=guarded,
-                 responses=_INFER_ERRORS, summary="V2 inference on one model version")
-    async def infer_version(name: str, version: str, body: V2InferRequest, request: Request) -> V2InferResponse:
+    async def infer_version(name: str, version: str, body: V2InferRequest, request: Request) -> Response:
         return await infer(name, version, body, request)
+
+    for path, endpoint, summary in (
+        ("/models/{name}/infer", infer_latest, "V2 inference: score plans for an image"),
+        ("/models/{name}/versions/{version}/infer", infer_version, "V2 inference on one model version"),
+    ):
+        router.add_api_route(path, endpoint, methods=["POST"], response_model=V2InferResponse, dependencies=guarded,
+                             responses=_INFER_RESPONSES, summary=summary, route_class_override=V2InferRoute)
 
     return router

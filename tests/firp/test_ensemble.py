@@ -1,6 +1,7 @@
 """EnsembleScorer: equals the members scored one by one, runs the backbone once, checks plans."""
 
 import dataclasses
+import json
 import warnings
 
 import numpy as np
@@ -211,3 +212,121 @@ def test_chunked_members_score_the_same_batched_and_one_by_one(tmp_path):
     np.testing.assert_allclose(a.probabilities, b.probabilities, atol=1e-6)
     assert a.weights.shape == (3, 10)
     np.testing.assert_allclose(a.weights.sum(axis=1), 1.0, atol=1e-5)
+
+
+# ------------------------------------------------------------------------------------------------
+# the fused FIRP rollout
+# ------------------------------------------------------------------------------------------------
+
+
+def _firp_bundle(tmp_path, chunk: int, n_members: int = 3, losses: bool = False):
+    """FIRP members of one architecture; ``losses``: each with other loss weights (as the shipped bundle)."""
+    members = []
+    for k in range(n_members):
+        cfg = dataclasses.replace(TINY, action_chunk=chunk)
+        if losses:
+            cfg = dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, alpha=0.001 * (k + 1), overshooting=0.0))
+        model = build_model("firp", cfg).eval()
+        with torch.no_grad():  # non-trivial plan statistics, as a trained member has
+            model.action_norm.mean[7:] = torch.randn(9) * 0.3
+            model.action_norm.std[7:] = torch.rand(9) + 0.5
+        members.append(BundleMember("firp", cfg, model, {"balanced_accuracy": 0.6}))
+    return load_bundle(export_tiny(tmp_path / f"b{chunk}-{losses}", members))
+
+
+@pytest.mark.parametrize("chunk", [1, 4])
+@pytest.mark.parametrize("n", [1, 3])
+@pytest.mark.parametrize("t", [8, 11, 16])  # 11: not a multiple of 4, the last chunk is padded
+def test_fused_equals_the_loop(tmp_path, chunk, n, t):
+    bundle = _firp_bundle(tmp_path, chunk)
+    fused, loop = EnsembleScorer(bundle, strategy="fused"), EnsembleScorer(bundle, strategy="loop")
+    assert fused.uses_fused and not loop.uses_fused
+    assert [type(runner).__name__ for _, runner in fused._small] == ["_FusedFIRP"]
+    image, plans = random_image(seed=n), valid_plans(n, t, seed=t)
+    a, b = fused.score(image, plans), loop.score(image, plans)
+    np.testing.assert_allclose(a.member_probabilities, b.member_probabilities, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(a.probabilities, b.probabilities, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(a.spread, b.spread, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(a.weights, b.weights, atol=1e-5, rtol=0)
+    assert a.weights.shape == (n, t)
+    np.testing.assert_array_equal(a.success, b.success)
+
+
+def test_fused_plans_shorter_than_one_chunk(tmp_path):
+    """T <= k: one transition, no prior steps; the head reads e_1 alone (weights all on step 0)."""
+    cfg = dataclasses.replace(TINY, action_chunk=8)
+    members = [BundleMember("firp", cfg, build_model("firp", cfg).eval()) for _ in range(2)]
+    bundle = load_bundle(export_tiny(tmp_path / "b", members))
+    a = EnsembleScorer(bundle, strategy="fused").score(random_image(), valid_plans(2, 8))
+    b = EnsembleScorer(bundle, strategy="loop").score(random_image(), valid_plans(2, 8))
+    np.testing.assert_allclose(a.member_probabilities, b.member_probabilities, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(a.weights, b.weights, atol=1e-6)
+
+
+def test_members_differing_only_in_loss_weights_are_batched(tmp_path):
+    """The loss weights shape training, not the computation: such members form one group."""
+    bundle = _firp_bundle(tmp_path, 4, losses=True)
+    assert len({json.dumps(c.loss.__dict__, sort_keys=True) for c in bundle.configs}) == 3
+    assert [idx for idx, _ in EnsembleScorer(bundle)._small] == [[0, 1, 2]]
+    vmapped = EnsembleScorer(bundle, strategy="vmap")
+    assert [(idx, type(g).__name__) for idx, g in vmapped._small] == [([0, 1, 2], "_VmappedGroup")]
+
+
+@pytest.mark.parametrize("strategy", ["auto", "fused"])
+@pytest.mark.parametrize("n", [1, 5, AUTO_VMAP_MAX_N + 1])
+def test_every_member_kind_has_a_correct_path_next_to_fused_members(tmp_path, strategy, n):
+    members = tiny_members(("firp", "a_mlp_image", "firp", "gru", "a_mlp_image", "a_mlp"))
+    bundle = load_bundle(export_tiny(tmp_path / "b", members))
+    image, plans = random_image(), valid_plans(n, 13)
+    got = EnsembleScorer(bundle, strategy=strategy).score(image, plans)
+    want = EnsembleScorer(bundle, strategy="loop").score(image, plans)
+    np.testing.assert_allclose(got.member_probabilities, want.member_probabilities, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(got.weights, want.weights, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("strategy", ["auto", "loop", "vmap"])
+def test_one_scene_per_plan(exported, strategy):
+    """features (N, Db), row i the scene of plan i: each plan scores as with its own image."""
+    scorer = EnsembleScorer(exported[2], strategy=strategy)
+    images, plans = [random_image(seed=s) for s in range(3)], valid_plans(3, 10, seed=7)
+    feats = torch.cat([scorer.image_features(im) for im in images])
+    together = scorer.score_features(feats, plans)
+    for i, image in enumerate(images):
+        alone = scorer.score(image, plans[i: i + 1])
+        np.testing.assert_allclose(together.member_probabilities[:, i], alone.member_probabilities[:, 0], atol=1e-6)
+        np.testing.assert_allclose(together.weights[i], alone.weights[0], atol=1e-6)
+
+
+def test_fused_scoring_is_safe_from_several_threads(tmp_path):
+    """The fused runner holds plain tensors only (no parameters swapped in and out)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    bundle = _firp_bundle(tmp_path, 4)
+    scorer = EnsembleScorer(bundle)
+    image, plans = random_image(), [valid_plans(2, 12, seed=s) for s in range(8)]
+    alone = [scorer.score(image, p).probabilities for p in plans]
+    with ThreadPoolExecutor(4) as pool:
+        together = list(pool.map(lambda p: scorer.score(image, p).probabilities, plans))
+    for a, b in zip(alone, together):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_the_fused_scene_cache_matches_by_value(tmp_path):
+    """A scene's projections are reused only for features of equal value, never for stale ones."""
+    bundle = _firp_bundle(tmp_path, 4)
+    fused, loop = EnsembleScorer(bundle), EnsembleScorer(bundle, strategy="loop")
+    plans = valid_plans(2, 12)
+    feats = fused.image_features(random_image(seed=1))
+    first = fused.score_features(feats, plans)
+    again = fused.score_features(feats.clone(), plans)  # another tensor, same values: the cached projection
+    np.testing.assert_array_equal(first.member_probabilities, again.member_probabilities)
+    with torch.inference_mode():
+        feats.add_(0.5)  # changed in place: must not be served from the cache
+    changed = fused.score_features(feats, plans)
+    np.testing.assert_allclose(changed.member_probabilities, loop.score_features(feats, plans).member_probabilities,
+                               atol=1e-5, rtol=0)
+    assert np.abs(changed.member_probabilities - first.member_probabilities).max() > 1e-4
+    for seed in range(2, 8):  # more scenes than the cache holds: still right
+        f = fused.image_features(random_image(seed=seed))
+        np.testing.assert_allclose(fused.score_features(f, plans).probabilities,
+                                   loop.score_features(f, plans).probabilities, atol=1e-5, rtol=0)

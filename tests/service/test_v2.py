@@ -31,7 +31,7 @@ def test_health_and_server_metadata(client):
     r = client.get("/v2/health/ready")
     assert r.status_code == 200 and r.json() == {"ready": True}
     meta = client.get("/v2").json()
-    assert meta["name"] == "firp-service" and meta["extensions"] == []
+    assert meta["name"] == "firp-service" and meta["extensions"] == ["binary_tensor_data"]
 
 
 def test_model_metadata_and_readiness(client):
