@@ -66,7 +66,10 @@ def test_ablation_figures_and_numbers(tiny_dataset, evaluated, tmp_path, capsys)
     report = json.loads((out / "ablation.json").read_text())
     assert [(m["repeat"], m["method"]) for m in report["models"]] == [(0, "firp"), (0, "firp_tcr")]
     for m in report["models"]:
-        assert m["n_test"] == 4 and len(m["frame_index"]) == 3  # T = 10, chunks of 4 -> 3 RSSM steps
+        k = m["action_chunk"]
+        assert k >= 1 and m["n_test"] == 4
+        assert m["frame_index"] == chunk_frame_index(10, k)  # T = 10: one RSSM step per chunk of k plan steps
+        assert len(m["frame_index"]) == math.ceil(10 / k)
         for values in m["per_episode"].values():
             assert len(values) == 4 and all(math.isfinite(v) for v in values)
         assert all(math.isfinite(m[k]) for k in ("scale", "spread", "r_ttc", "r_atc"))
