@@ -127,6 +127,9 @@ def main(argv: list[str] | None = None) -> int:
             if services.sim_restarts:
                 print(f"the sim worker was restarted {services.sim_restarts} time(s); no trial was lost",
                       file=sys.stderr)
+            if services.service_restarts:
+                print(f"the scoring service was restarted {services.service_restarts} time(s); no trial was lost",
+                      file=sys.stderr)
     except (FileExistsError, RunSetupError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_USAGE

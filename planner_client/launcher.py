@@ -11,6 +11,9 @@ A long run must not lose trials to a crashed sim worker. ``services.sim()`` retu
 the client's retries, restarts it (on a new port) and repeats the call. Episodes are determined by
 (task, seed, pose error), so the :class:`SimClient` re-creates an episode the new worker does not
 know, and the trial carries on as if nothing happened; ``services.sim_restarts`` counts restarts.
+The scoring service gets the same treatment through ``services.scorer()`` (a
+:class:`RestartingScorer`): scoring is stateless, so a repeated call on a new service process gives
+the same answer; ``services.service_restarts`` counts those restarts.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ import logging
 import os
 import sys
 from pathlib import Path
-from typing import Callable, Mapping, Sequence, TypeVar
+from typing import Callable, Generic, Mapping, Sequence, TypeVar
 
 import numpy as np
 
@@ -29,6 +32,7 @@ from planner_client.transport import RetryPolicy, ServiceUnavailable
 
 log = logging.getLogger("planner_client.launcher")
 R = TypeVar("R")
+C = TypeVar("C", SimClient, ScoreClient)
 
 
 class Launcher:
@@ -110,15 +114,24 @@ class Launcher:
     def sim_restarts(self) -> int:
         return max(0, self.sim_server.starts - 1)
 
+    @property
+    def service_restarts(self) -> int:
+        return 0 if self.service_server is None else max(0, self.service_server.starts - 1)
+
     # -- recovery -------------------------------------------------------------------------------
     def sim_alive(self) -> bool:
         return self.sim_server.alive()
 
+    @staticmethod
+    def restart(server: ManagedServer) -> str:
+        """Stop ``server`` if it still runs, start a new one on a new port; its URL."""
+        log.warning("restarting the %s (was at %s, %s)", server.name, server.url,
+                    "running" if server.alive() else "dead")
+        return server.restart()
+
     def restart_sim(self) -> str:
         """Stop the sim worker if it still runs, start a new one on a new port; its URL."""
-        log.warning("restarting the sim worker (was at %s, %s)", self.sim_server.url,
-                    "running" if self.sim_alive() else "dead")
-        return self.sim_server.restart()
+        return self.restart(self.sim_server)
 
     def restart_sim_if_dead(self) -> bool:
         """Restart the sim worker if its process has exited; whether it did."""
@@ -133,43 +146,87 @@ class Launcher:
         return RestartingSim(self, **client_options)
 
     def score_client(self, api_key: str | None = None, **client_options) -> ScoreClient:
+        """A plain client of the launched service (no restarts: for callers that handle failures)."""
         return ScoreClient(self.service_url, api_key, **client_options)
 
+    def scorer(self, api_key: str | None = None, **client_options) -> "RestartingScorer":
+        """A scoring client on this launcher's service that survives the service dying."""
+        if self.service_server is None:
+            raise RuntimeError("no scoring service: the launcher was started without a bundle")
+        return RestartingScorer(self, api_key, **client_options)
 
-class RestartingSim:
-    """A :class:`SimClient` that restarts the launcher's sim worker when it stops answering.
 
-    The client first retries with backoff (a busy or briefly unreachable worker recovers by
-    itself); only when that fails is the worker restarted -- dead or hung alike -- and the call
+class _Restarting(Generic[C]):
+    """Calls through a client of one launched server; restarts the server when it stops answering.
+
+    The client first retries with backoff (a busy or briefly unreachable server recovers by
+    itself); only when that fails is the server restarted -- dead or hung alike -- and the call
     repeated, at most ``max_restarts`` times per call. Rejected requests (4xx) are not retried.
+    Only for calls that may be repeated: executing a plan and scoring one are both deterministic.
     """
 
-    def __init__(self, launcher: Launcher, max_restarts: int = 2, retry: RetryPolicy = RetryPolicy(),
-                 **client_options):
+    def __init__(self, launcher: Launcher, server: ManagedServer, what: str, connect: Callable[[str], C],
+                 max_restarts: int):
         self.launcher = launcher
+        self.server = server
+        self.what = what  # for messages: "sim worker", "scoring service"
         self.max_restarts = max_restarts
-        self._client_options = {"retry": retry, **client_options}
-        self.client = SimClient(launcher.sim_url, **self._client_options)
+        self._connect = connect
+        self.client: C = connect(server.url)
 
-    def _call(self, call: Callable[[SimClient], R]) -> R:
+    def _call(self, call: Callable[[C], R]) -> R:
         for restart in range(self.max_restarts + 1):
-            if self.client.base_url != self.launcher.sim_url:  # someone else restarted it meanwhile
+            if self.client.base_url != self.server.url:  # someone else restarted it meanwhile
                 self._reconnect()
             try:
                 return call(self.client)
             except ServiceUnavailable as exc:
                 if restart == self.max_restarts:
                     raise ServiceUnavailable(exc.service, exc.url,
-                                             f"{exc} (gave up after {self.max_restarts} restarts of the sim worker; "
-                                             f"its log: {self.launcher.sim_server.log_path})") from exc
-                log.warning("sim worker failed (%s); restarting it", exc)
-                self.launcher.restart_sim()
+                                             f"{exc} (gave up after {self.max_restarts} restarts of the "
+                                             f"{self.what}; its log: {self.server.log_path})") from exc
+                log.warning("%s failed (%s); restarting it", self.what, exc)
+                self.launcher.restart(self.server)
                 self._reconnect()
         raise AssertionError("unreachable")
 
     def _reconnect(self) -> None:
         self.client.close()
-        self.client = SimClient(self.launcher.sim_url, **self._client_options)
+        self.client = self._connect(self.server.url)
+
+    def close(self) -> None:
+        self.client.close()
+
+
+class RestartingScorer(_Restarting[ScoreClient]):
+    """A :class:`ScoreClient` that restarts the launcher's scoring service when it stops answering."""
+
+    def __init__(self, launcher: Launcher, api_key: str | None = None, max_restarts: int = 2,
+                 retry: RetryPolicy = RetryPolicy(), **client_options):
+        assert launcher.service_server is not None
+        super().__init__(launcher, launcher.service_server, "scoring service",
+                         lambda url: ScoreClient(url, api_key, retry=retry, **client_options), max_restarts)
+
+    def score(self, image_b64: str, plan: np.ndarray, task: str) -> dict:
+        return self._call(lambda c: c.score(image_b64, plan, task))
+
+    def model(self) -> dict:
+        return self._call(lambda c: c.model())
+
+    def __enter__(self) -> "RestartingScorer":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class RestartingSim(_Restarting[SimClient]):
+    """A :class:`SimClient` that restarts the launcher's sim worker when it stops answering."""
+
+    def __init__(self, launcher: Launcher, max_restarts: int = 2, retry: RetryPolicy = RetryPolicy(),
+                 **client_options):
+        super().__init__(launcher, launcher.sim_server, "sim worker",
+                         lambda url: SimClient(url, retry=retry, **client_options), max_restarts)
 
     def start(self, task: str, seed: int) -> RemoteEpisode:
         return self._call(lambda c: c.start(task, seed))
@@ -183,6 +240,3 @@ class RestartingSim:
             self.client.delete(episode)
         except ServiceUnavailable:
             pass
-
-    def close(self) -> None:
-        self.client.close()

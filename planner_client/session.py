@@ -2,7 +2,8 @@
 
 With no ``--sim`` / ``--service`` the run launches both (:class:`planner_client.launcher.Launcher`,
 logs beside the run file); given one URL, it launches only the other. A launched sim worker is
-used through :class:`RestartingSim`, so a worker killed mid-run is restarted and no trial is lost.
+used through :class:`RestartingSim` and a launched scoring service through :class:`RestartingScorer`,
+so either one killed mid-run is restarted and no trial is lost.
 Given URLs are checked for readiness first, so a wrong URL fails before anything is launched.
 """
 
@@ -42,7 +43,7 @@ class ServicePlan:
 @dataclass
 class Services:
     sim: Any  # a planner_client.backend.SimBackend
-    scorer: ScoreClient | None
+    scorer: Any  # ScoreClient, or RestartingScorer when the run launched the service
     launcher: Launcher | None
 
     @property
@@ -50,6 +51,10 @@ class Services:
         if self.launcher is None or not self.launcher.runs_sim:
             return 0
         return self.launcher.sim_restarts
+
+    @property
+    def service_restarts(self) -> int:
+        return 0 if self.launcher is None else self.launcher.service_restarts
 
 
 @contextmanager
@@ -72,5 +77,5 @@ def open_services(plan: ServicePlan) -> Iterator[Services]:
             sim = launcher.sim()
             stack.callback(sim.close)
         if bundle is not None:
-            scorer = stack.enter_context(launcher.score_client(plan.api_key))
+            scorer = stack.enter_context(launcher.scorer(plan.api_key))
         yield Services(sim, scorer, launcher)

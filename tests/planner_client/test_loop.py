@@ -248,6 +248,33 @@ def test_a_sim_worker_killed_mid_run_loses_no_trial(tmp_path, launcher, scorer):
     assert launcher.sim_restarts == restarts + 1
 
 
+def test_a_scoring_service_killed_mid_run_loses_no_trial(tmp_path, sim_and_planner, tiny_bundle):
+    """The launched service is SIGKILLed after the first trial: the next score restarts it on a new
+    port, the run goes on, and the restarted service scores the same plan exactly as before."""
+    sim, planner = sim_and_planner
+    with Launcher(tmp_path / "services", bundle=tiny_bundle, sim=False, ready_timeout=120) as services:
+        scorer = services.scorer(retry=FAST)
+        seen = []
+        try:
+            for record in run_trials(RunConfig(trials=3, out=tmp_path / "r.jsonl", max_iterations=2, oracle=False),
+                                     sim, planner, scorer):
+                seen.append(record)
+                if len(seen) == 1:
+                    old_url, process = services.service_url, services.service_server.process
+                    os.kill(process.pid, signal.SIGKILL)
+                    process.wait(10)
+            episode = sim.start("stacking", 100_000)
+            plan = planner.plan("stacking", episode.observation).actions
+            assert scorer.score(episode.image_b64, plan, "stacking")["score"] == pytest.approx(seen[0]["scores"][0])
+        finally:
+            scorer.close()
+        assert [r["trial"] for r in seen] == [0, 1, 2]
+        assert [r["trial"] for r in read_records(tmp_path / "r.jsonl")] == [0, 1, 2]
+        assert all(len(r["scores"]) >= 1 for r in seen)
+        assert services.service_restarts == 1 and services.service_url != old_url
+        assert scorer.client.base_url == services.service_url
+
+
 # -- the CLI -------------------------------------------------------------------------------------------
 def test_cli_launches_both_services_runs_and_writes_the_report(tmp_path, tiny_bundle, capsys):
     out = tmp_path / "runs" / "run.jsonl"
