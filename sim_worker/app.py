@@ -117,7 +117,7 @@ def create_app(settings: SimWorkerSettings | None = None, clock: Callable[[], fl
         if not state.ready:
             message = (f"warm-up failed: {state.warm_up_error}" if state.warm_up_error
                        else "building the worlds and rendering once")
-            return error_response(503, None, "not_ready", message)
+            return error_response(request.scope, 503, None, "not_ready", message)
         return {"status": "ready", "tasks": list(TASK_NAMES), "image_size": settings.image_size}
 
     @app.post("/v1/episodes", response_model=EpisodeResponse, status_code=201, responses=ERRORS)
