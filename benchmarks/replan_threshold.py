@@ -33,6 +33,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from planner_client.loop import read_records
+
 ROOT = Path(__file__).resolve().parents[1]
 SPLIT_SEEDS = {"calibration": 200_000, "test": 100_000}
 GRID = np.round(np.arange(0.02, 0.981, 0.02), 2)
@@ -51,14 +53,10 @@ def collect(task: str, split: str, trials: int, bundle_dir: Path, out: Path, max
     torch.set_num_threads(1)
     if out.exists() and not resume:
         sys.exit(f"--out: {out} exists; pass --resume to continue it or choose another file")
-    done = set()
+    records = read_records(out)  # a torn last line (killed mid-write) is dropped: that trial runs again
+    done = {r["trial"] for r in records}
     if out.exists():
-        for line in out.read_text().splitlines():
-            try:
-                done.add(json.loads(line)["trial"])
-            except (json.JSONDecodeError, KeyError):
-                break  # a torn last line: that trial runs again
-        out.write_text("".join(line + "\n" for line in out.read_text().splitlines()[:len(done)]))
+        out.write_text("".join(json.dumps(r) + "\n" for r in records))
     scorer = EnsembleScorer(load_bundle(bundle_dir))
     model = {"name": scorer.bundle.manifest.get("name"), "version": scorer.bundle.manifest.get("version"),
              "threshold": scorer.threshold}
@@ -86,7 +84,7 @@ def collect(task: str, split: str, trials: int, bundle_dir: Path, out: Path, max
 
 def read(path: Path) -> tuple[np.ndarray, np.ndarray, dict]:
     """``(N, K)`` scores and successes of a records file, and the model it was scored with."""
-    records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    records = read_records(path)
     if not records:
         sys.exit(f"{path}: no trials recorded yet")
     return (np.array([r["scores"] for r in records]), np.array([r["success"] for r in records], dtype=bool),
@@ -126,15 +124,13 @@ def choose_threshold(curve: list[dict]) -> float:
 
 
 def analyse(task: str, files: dict[str, Path], out_json: Path, out_png: Path, command: str) -> dict:
+    loaded = {split: read(path) for split, path in files.items() if path.exists()}  # (scores, success, model)
     made_by = [f"MUJOCO_GL=egl python benchmarks/replan_threshold.py --task {task} --split {split} --trials "
-               f"{sum(1 for line in path.read_text().splitlines() if line.strip())}"
-               for split, path in files.items() if path.exists()]
-    report: dict = {"command": command, "records_made_by": made_by, "task": task, "machine": {"python": platform.python_version()},
-                    "grid": GRID.tolist(), "splits": {}}
-    for split, path in files.items():
-        if not path.exists():
-            continue
-        scores, success, model = read(path)
+               f"{len(scores)}" for split, (scores, _, _) in loaded.items()]
+    report: dict = {"command": command, "records_made_by": made_by, "task": task,
+                    "machine": {"python": platform.python_version()}, "grid": GRID.tolist(), "splits": {}}
+    for split, (scores, success, model) in loaded.items():
+        path = files[split]
         curve = [dict(zip(("threshold", "success_rate", "plans_scored"), (float(t), *replan_success(scores, success, t))))
                  for t in GRID]
         bundle_rate, bundle_plans = replan_success(scores, success, model["threshold"])
@@ -147,7 +143,7 @@ def analyse(task: str, files: dict[str, Path], out_json: Path, out_png: Path, co
         chosen = choose_threshold(report["splits"]["calibration"]["curve"])
         report["chosen_threshold"] = chosen
         for split, part in report["splits"].items():
-            scores, success, _ = read(Path(part["file"]))
+            scores, success, _ = loaded[split]
             rate, plans = replan_success(scores, success, chosen)
             part["chosen_threshold"] = {"threshold": chosen, "success_rate": rate, "plans_scored": plans}
     out_json.parent.mkdir(parents=True, exist_ok=True)

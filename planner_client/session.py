@@ -17,6 +17,7 @@ from typing import Any, Iterator
 from planner_client.bundles import require_bundle, shipped_bundle_dir
 from planner_client.clients import ScoreClient, SimClient
 from planner_client.launcher import Launcher
+from planner_client.loop import Scorer
 
 
 @dataclass(frozen=True)
@@ -43,7 +44,7 @@ class ServicePlan:
 @dataclass
 class Services:
     sim: Any  # a planner_client.backend.SimBackend
-    scorer: Any  # ScoreClient, or RestartingScorer when the run launched the service
+    scorer: Scorer | None  # a ScoreClient, or a RestartingScorer when the run launched the service
     launcher: Launcher | None
 
     @property
