@@ -1,19 +1,37 @@
-"""How predictable is a task's outcome from privileged scene geometry, with this many episodes?
+"""How learnable is a task's outcome from scene geometry, with this many episodes -- and in which frame?
 
-A yardstick for the learned models: from the recorded *ground truth* of each episode -- true initial
-block poses in pick order, their pairwise distances, yaw (as cos/sin of 4*yaw: a cube's symmetry),
-the perception error the planner worked with, and the place targets -- two standard classifiers
-(logistic regression, gradient boosting; scikit-learn) predict success under 5-fold stratified
-cross-validation. No model sees this information at inference; if even these stay near chance, the
-outcome is a complex function of the geometry that a dataset of this size does not pin down.
+A yardstick for the learned models. Two standard classifiers (logistic regression, gradient
+boosting; scikit-learn) predict success under 5-fold stratified cross-validation from three
+descriptions of each episode's scene:
+
+* ``raw`` -- the recorded *ground truth* in world coordinates: true initial block poses in pick
+  order, pairwise distances, yaw (as cos/sin of 4*yaw: a cube's symmetry), the perception error the
+  planner worked with, and the place targets;
+* ``grasp_frame_true`` -- the same scene seen from each grasp: for every moved block, the other
+  blocks' offsets and relative yaw in the frame of the planned grasp (its yaw), whether each is
+  still on the table, the grasp's offset from the block's true centre, and (stacking) how far the
+  tower's target is from its base;
+* ``grasp_frame_plan`` -- the grasp-frame description built from the planner's *estimates* only,
+  i.e. from what the plan itself carries (it grasps and places where the estimates say): no
+  privileged information at all.
+
+The contrast between ``raw`` and ``grasp_frame_*`` tells whether the outcome is hard because it is
+chaotic or because it is a simple function in a frame the raw coordinates hide.
+
+Episodes come from recorded datasets or are simulated here without frames (``--simulate TASK:N``:
+``sim_worker.collect``'s episodes 0..N-1, the same seeds and block orders; labels are cached in a
+JSONL file as they finish, so an interrupted run resumes):
 
     .venv/bin/python benchmarks/outcome_predictability.py data/stacking.h5 data/replacement.h5
+    MUJOCO_GL=egl .venv/bin/python benchmarks/outcome_predictability.py --simulate stacking:640
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing as mp
+import os
 from pathlib import Path
 
 import numpy as np
@@ -23,49 +41,159 @@ from sklearn.metrics import balanced_accuracy_score
 from sklearn.model_selection import StratifiedKFold, cross_val_predict
 from sklearn.pipeline import make_pipeline
 from sklearn.preprocessing import StandardScaler
+from tqdm import tqdm
 
-from firp.episodes import EpisodeDataset
+Episode = tuple[dict, bool]  # (record attrs as sim_worker.collect writes them, success)
+FEATURE_SETS = ("raw", "grasp_frame_true", "grasp_frame_plan")
 
 
-def geometry_features(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """``(N, F)`` privileged features and ``(N,)`` success labels of a recorded dataset."""
-    rows, labels = [], []
+def dataset_episodes(path: Path) -> tuple[list[Episode], list[str]]:
+    """The episodes of a recorded dataset and its block names."""
+    from firp.episodes import EpisodeDataset
+
     with EpisodeDataset(path) as ds:
-        names = list(ds.attrs["block_names"])
-        for demo in ds.demo_names:
-            attrs = ds.demo_attrs(demo)
-            order = [names.index(c) for c in attrs["block_order"]]
-            blocks = np.asarray(attrs["true_initial_blocks"])[order]  # (3, 4) x, y, z, yaw in pick order
-            estimates = np.array([attrs["pose_estimates"][c]["position"] for c in attrs["block_order"]])
-            pairs = [np.linalg.norm(blocks[i, :2] - blocks[j, :2]) for i in range(3) for j in range(i + 1, 3)]
-            targets = np.asarray(attrs["place_targets"])
-            rows.append(np.concatenate([
-                blocks.ravel(), pairs, np.cos(4 * blocks[:, 3]), np.sin(4 * blocks[:, 3]),
-                (estimates[:, :2] - blocks[:, :2]).ravel(), targets[:, :2].ravel(),
-            ]))
-            labels.append(ds.success(demo))
-    return np.array(rows), np.array(labels)
+        return [(ds.demo_attrs(d), ds.success(d)) for d in ds.demo_names], list(ds.attrs["block_names"])
+
+
+_worker: dict = {}
+
+
+def _init_worker(task: str) -> None:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from planner_client.tamp import PlannerConfig, TampPlanner
+    from sim_worker.scene import RenderConfig, SceneLayout
+    from sim_worker.world import World
+
+    _worker.update(task=task, planner=TampPlanner(PlannerConfig()),
+                   world=World(SceneLayout(), RenderConfig.for_task(task, 16, 16)))
+
+
+def _simulate_one(seed: int) -> dict:
+    from sim_worker.collect import episode_order, simulate_episode
+    from sim_worker.perception import PoseErrorConfig
+
+    record = simulate_episode(_worker["world"], _worker["planner"], _worker["task"], seed, episode_order(seed),
+                              PoseErrorConfig(), record_frames=False)
+    return {"attrs": record.attrs, "success": record.success}
+
+
+def simulated_episodes(task: str, episodes: int, cache: Path, workers: int) -> tuple[list[Episode], list[str]]:
+    """``collect``'s episodes 0..episodes-1 of ``task``, executed without frames; cached in ``cache``."""
+    from planner_client.loop import read_records
+    from sim_worker.scene import BLOCK_NAMES
+
+    done = {int(r["attrs"]["seed"]): r for r in read_records(cache)}
+    pending = [s for s in range(episodes) if s not in done]
+    if pending:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        ctx = mp.get_context("spawn")  # no forked GL contexts
+        with ctx.Pool(max(1, min(workers, len(pending))), _init_worker, (task,)) as pool, cache.open("a") as sink:
+            for record in tqdm(pool.imap_unordered(_simulate_one, pending), total=len(pending),
+                               desc=f"simulate {task}", unit="ep"):
+                sink.write(json.dumps(record) + "\n")
+                sink.flush()
+                done[int(record["attrs"]["seed"])] = record
+    return [(done[s]["attrs"], bool(done[s]["success"])) for s in range(episodes)], list(BLOCK_NAMES)
+
+
+def _poses_in_order(attrs: dict, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """``(n, 4)`` true and estimated (x, y, z, yaw) block poses in pick order."""
+    order = list(attrs["block_order"])
+    true = np.asarray(attrs["true_initial_blocks"], dtype=float)[[names.index(c) for c in order]]
+    est = np.array([[*attrs["pose_estimates"][c]["position"], attrs["pose_estimates"][c]["yaw"]] for c in order])
+    return true, est
+
+
+def raw_features(attrs: dict, names: list[str]) -> np.ndarray:
+    blocks, estimates = _poses_in_order(attrs, names)
+    n = len(blocks)
+    pairs = [np.linalg.norm(blocks[i, :2] - blocks[j, :2]) for i in range(n) for j in range(i + 1, n)]
+    targets = np.asarray(attrs["place_targets"], dtype=float)
+    return np.concatenate([blocks.ravel(), pairs, np.cos(4 * blocks[:, 3]), np.sin(4 * blocks[:, 3]),
+                           (estimates[:, :2] - blocks[:, :2]).ravel(), targets[:, :2].ravel()])
+
+
+def grasp_frame_features(attrs: dict, names: list[str], use_estimates: bool) -> np.ndarray:
+    """The scene seen from each planned grasp (see the module docstring).
+
+    Stacking moves the 2nd and 3rd blocks of the order onto the 1st; replacement moves all three.
+    ``plan.grasp_yaws`` follows the moved blocks.
+    """
+    true, est = _poses_in_order(attrs, names)
+    scene = est if use_estimates else true
+    n = len(scene)
+    stacking = attrs["task"] == "stacking"
+    moved = list(range(1, n)) if stacking else list(range(n))
+    rows: list[float] = []
+    if stacking:  # the tower is built where the base is estimated to be
+        rows += list(est[0, :2] - scene[0, :2])
+    for k, yaw in zip(moved, attrs["grasp_yaws"]):
+        c, s = np.cos(yaw), np.sin(yaw)
+        to_grasp = np.array([[c, s], [-s, c]])  # world xy -> grasp frame
+        rows += list(to_grasp @ (est[k, :2] - scene[k, :2]))  # grasp offset from the block's centre
+        rows += [np.cos(4 * (scene[k, 3] - yaw)), np.sin(4 * (scene[k, 3] - yaw))]
+        for j in range(n):
+            if j == k:
+                continue
+            rel = to_grasp @ (scene[j, :2] - scene[k, :2])
+            still_there = float(j not in moved or moved.index(j) > moved.index(k))
+            rows += [rel[0], rel[1], abs(rel[0]), abs(rel[1]), float(np.hypot(*rel)),
+                     np.cos(4 * (scene[j, 3] - yaw)), np.sin(4 * (scene[j, 3] - yaw)), still_there]
+    return np.array(rows)
+
+
+def features(episodes: list[Episode], names: list[str], kind: str) -> np.ndarray:
+    if kind == "raw":
+        return np.array([raw_features(a, names) for a, _ in episodes])
+    return np.array([grasp_frame_features(a, names, use_estimates=kind == "grasp_frame_plan") for a, _ in episodes])
+
+
+def evaluate(X: np.ndarray, y: np.ndarray) -> dict[str, float]:
+    cv = StratifiedKFold(5, shuffle=True, random_state=0)
+    out = {}
+    for name, model in [("logistic_regression", LogisticRegression(max_iter=3000)),
+                        ("gradient_boosting", GradientBoostingClassifier(random_state=0))]:
+        pred = cross_val_predict(make_pipeline(StandardScaler(), model), X, y, cv=cv)
+        out[name] = round(balanced_accuracy_score(y, pred), 3)
+    return out
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("datasets", nargs="+", type=Path)
+    parser.add_argument("datasets", nargs="*", type=Path)
+    parser.add_argument("--simulate", action="append", default=[], metavar="TASK:N",
+                        help="simulate collect's first N episodes of TASK without frames (repeatable)")
+    parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", type=Path, default=Path("docs/results/outcome_predictability.json"))
     args = parser.parse_args()
-    results = []
+    if not args.datasets and not args.simulate:
+        parser.error("give dataset files and/or --simulate TASK:N")
+    sources: list[tuple[str, list[Episode], list[str]]] = []
     for path in args.datasets:
-        X, y = geometry_features(path)
-        cv = StratifiedKFold(5, shuffle=True, random_state=0)
-        for name, model in [("logistic_regression", LogisticRegression(max_iter=2000)),
-                            ("gradient_boosting", GradientBoostingClassifier(random_state=0))]:
-            pred = cross_val_predict(make_pipeline(StandardScaler(), model), X, y, cv=cv)
-            results.append({"dataset": str(path), "episodes": int(len(y)), "features": int(X.shape[1]),
-                            "classifier": name, "balanced_accuracy_5fold": round(balanced_accuracy_score(y, pred), 3)})
-    print("| dataset | episodes | classifier | balanced accuracy (5-fold CV) |\n|---|---|---|---|")
+        sources.append((str(path), *dataset_episodes(path)))
+    for spec in args.simulate:
+        task, _, count = spec.partition(":")
+        if task not in ("stacking", "replacement") or not count.isdigit() or int(count) < 10:
+            parser.error(f"--simulate {spec!r}: expected TASK:N with TASK stacking or replacement and N >= 10")
+        cache = Path(f"runs/predictability-{task}.jsonl")
+        sources.append((f"simulated {task} episodes 0-{int(count) - 1} (collect's seeds and orders)",
+                        *simulated_episodes(task, int(count), cache, args.workers)))
+    results = []
+    for source, episodes, names in sources:
+        y = np.array([ok for _, ok in episodes])
+        for kind in FEATURE_SETS:
+            X = features(episodes, names, kind)
+            for classifier, score in evaluate(X, y).items():
+                results.append({"source": source, "episodes": int(len(y)), "success_rate": round(float(y.mean()), 3),
+                                "features": kind, "n_features": int(X.shape[1]), "classifier": classifier,
+                                "balanced_accuracy_5fold": score})
+    print("| source | episodes | features | classifier | balanced accuracy (5-fold CV) |\n|---|---|---|---|---|")
     for r in results:
-        print(f"| {r['dataset']} | {r['episodes']} | {r['classifier']} | {r['balanced_accuracy_5fold']:.3f} |")
-    args.out.write_text(json.dumps({"command": "benchmarks/outcome_predictability.py "
-                                    + " ".join(map(str, args.datasets)), "results": results}, indent=1))
+        print(f"| {r['source']} | {r['episodes']} | {r['features']} | {r['classifier']} | {r['balanced_accuracy_5fold']:.3f} |")
+    command = "benchmarks/outcome_predictability.py " + " ".join(
+        [*map(str, args.datasets), *(f"--simulate {s}" for s in args.simulate)])
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"command": command, "results": results}, indent=1) + "\n")
     print(f"wrote {args.out}")
 
 

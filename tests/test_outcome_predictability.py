@@ -1,0 +1,91 @@
+"""The scene descriptions of benchmarks/outcome_predictability.py, against hand-made scenes."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+_SPEC = importlib.util.spec_from_file_location(
+    "outcome_predictability", Path(__file__).resolve().parents[1] / "benchmarks" / "outcome_predictability.py")
+predictability = importlib.util.module_from_spec(_SPEC)
+sys.modules[_SPEC.name] = predictability
+_SPEC.loader.exec_module(predictability)
+
+NAMES = ["red", "green", "blue"]
+
+
+def stacking_attrs(estimate_shift=(0.0, 0.0)) -> dict:
+    # order green (base), red, blue; red 10 cm east of the base, blue 10 cm north of it
+    true = {"red": [0.6, 0.0, 0.02, 0.0], "green": [0.5, 0.0, 0.02, 0.0], "blue": [0.5, 0.1, 0.02, 0.0]}
+    est = {c: {"position": [p[0] + estimate_shift[0], p[1] + estimate_shift[1], p[2]], "yaw": p[3]}
+           for c, p in true.items()}
+    return {"task": "stacking", "block_order": ["green", "red", "blue"],
+            "true_initial_blocks": [true[c] for c in NAMES], "pose_estimates": est,
+            "grasp_yaws": [np.pi / 2, 0.0], "place_targets": [[0.5, 0.0, 0.06, 0.0], [0.5, 0.0, 0.1, 0.0]]}
+
+
+def test_grasp_frame_rotates_neighbours_into_each_grasp():
+    f = predictability.grasp_frame_features(stacking_attrs(), NAMES, use_estimates=False)
+    # base error (2); then per moved block: grasp offset (2), own yaw (2), 2 neighbours x 8
+    assert f.shape == (2 + 2 * (4 + 2 * 8),)
+    np.testing.assert_allclose(f[:2], 0.0)
+    red = f[2:22]  # first move: red, grasp yaw 90 deg
+    np.testing.assert_allclose(red[:2], 0.0, atol=1e-12)  # estimates exact: no grasp offset
+    # base green is 10 cm west of red: world (-0.1, 0) -> grasp frame (0, +0.1) at yaw 90 deg
+    np.testing.assert_allclose(red[4:6], [0.0, 0.1], atol=1e-12)
+    assert red[8] == pytest.approx(0.1)
+    assert red[11] == 1.0  # the base stays on the table
+    # blue (picked after red) is at world (-0.1, 0.1) from red -> grasp frame (0.1, 0.1)
+    np.testing.assert_allclose(red[12:14], [0.1, 0.1], atol=1e-12)
+    assert red[19] == 1.0
+    blue = f[22:]  # second move: blue, grasp yaw 0; red has been moved already
+    np.testing.assert_allclose(blue[12:14], [0.1, -0.1], atol=1e-12)  # red's initial spot, world frame
+    assert blue[19] == 0.0
+
+
+def test_estimate_error_shows_as_grasp_offset_only_in_the_true_frame():
+    attrs = stacking_attrs(estimate_shift=(0.003, 0.0))
+    true_view = predictability.grasp_frame_features(attrs, NAMES, use_estimates=False)
+    plan_view = predictability.grasp_frame_features(attrs, NAMES, use_estimates=True)
+    np.testing.assert_allclose(true_view[:2], [0.003, 0.0])  # the tower's target vs its real base
+    np.testing.assert_allclose(true_view[2:4], [0.0, -0.003], atol=1e-12)  # red's grasp, yaw 90 deg
+    np.testing.assert_allclose(plan_view[:4], 0.0, atol=1e-12)  # the plan cannot see its own error
+    # a common shift leaves every relative offset unchanged
+    np.testing.assert_allclose(true_view[4:22], plan_view[4:22], atol=1e-12)
+
+
+def test_raw_features_keep_the_recorded_layout():
+    f = predictability.raw_features(stacking_attrs(), NAMES)
+    assert f.shape == (12 + 3 + 3 + 3 + 6 + 4,)
+    np.testing.assert_allclose(f[:4], [0.5, 0.0, 0.02, 0.0])  # green first: pick order
+
+
+def test_candidates_are_described_as_collect_records_them():
+    """The grasp-frame scorer describes loop candidates without executing them; its description must be
+    the one the classifier was trained on (collect's record of the same seed and order)."""
+    import json
+
+    from planner_client.tamp import PlannerConfig, TampPlanner
+    from sim_worker.collect import episode_order, simulate_episode
+    from sim_worker.perception import PoseErrorConfig
+    from sim_worker.scene import RenderConfig, SceneLayout
+    from sim_worker.world import World
+
+    spec = importlib.util.spec_from_file_location(
+        "grasp_frame_scorer", Path(__file__).resolve().parents[1] / "benchmarks" / "grasp_frame_scorer.py")
+    scorer = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(scorer)
+    seed = 3
+    order = list(episode_order(seed))
+    with World(SceneLayout(), RenderConfig.for_task("stacking", 16, 16)) as world:
+        recorded = simulate_episode(world, TampPlanner(PlannerConfig()), "stacking", seed, tuple(order),
+                                    PoseErrorConfig(), record_frames=False).attrs
+    described = scorer.candidate_attrs("stacking", seed, [order])[0]
+    recorded = json.loads(json.dumps(recorded))  # as the JSONL cache stores it
+    for key in ("block_order", "pose_estimates", "true_initial_blocks", "grasp_yaws", "place_targets"):
+        assert json.loads(json.dumps(described[key])) == recorded[key], key
+    np.testing.assert_array_equal(
+        predictability.grasp_frame_features(described, NAMES, use_estimates=True),
+        predictability.grasp_frame_features(recorded, NAMES, use_estimates=True))
