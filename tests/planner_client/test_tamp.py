@@ -85,3 +85,33 @@ def test_unreachable_pose_raises_a_clear_error():
     ik = PandaIK()
     with pytest.raises(IKFailure, match="no IK solution"):
         ik.solve(np.array([1.5, 0.0, 0.02]), 0.0, np.zeros(7) + np.array([0, 0, 0, -1.5, 0, 1.5, 0]))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_plan_alone_carries_its_grasp_frames(planner, seed):
+    """Forward kinematics of the plan's joint targets recovers where each block was estimated to be and
+    the grasp's finger-axis yaw (what benchmarks/outcome_predictability.py's ``grasp_frame_plan``
+    description uses), and the first release recovers the tower's base estimate."""
+    from planner_client.ik import rotation_yaw
+
+    layout = SceneLayout()
+    true = sample_initial_blocks("stacking", seed, layout)
+    obs = observation(true, seed, layout, PoseErrorConfig())
+    order = ("green", "red", "blue")
+    plan = planner.plan("stacking", obs, order)
+    categories, targets = split_plan(plan.actions)
+    joints = targets[:, :7]  # arm joints; the last two are the fingers
+
+    def first_steps(name: str) -> list[int]:
+        steps = np.flatnonzero(categories == CATEGORIES.index(name))
+        return [int(run[0]) for run in np.split(steps, np.flatnonzero(np.diff(steps) > 1) + 1)]
+
+    grasps, releases = first_steps("grasp"), first_steps("release")
+    assert len(grasps) == len(releases) == 2
+    for k, step in enumerate(grasps):
+        pos, rot = planner.ik.forward(joints[step])
+        estimate = np.asarray(obs["blocks"][order[k + 1]]["position"])
+        assert np.linalg.norm(pos[:2] - estimate[:2]) < 1e-3
+        assert abs(rotation_yaw(rot) - plan.grasp_yaws[k]) < 1e-3
+    pos, _ = planner.ik.forward(joints[releases[0]])
+    np.testing.assert_allclose(pos[:2], obs["blocks"][order[0]]["position"][:2], atol=1e-3)
