@@ -10,7 +10,8 @@ descriptions of each episode's scene:
 * ``grasp_frame_true`` -- the same scene seen from each grasp: for every moved block, the other
   blocks' offsets and relative yaw in the frame of the planned grasp (its yaw), whether each is
   still on the table, the grasp's offset from the block's true centre, and (stacking) how far the
-  tower's target is from its base;
+  tower's target is from its base, (replacement) how far box A's walls are along and across the
+  fingers;
 * ``grasp_frame_plan`` -- the grasp-frame description built from the planner's *estimates* only,
   i.e. from what the plan itself carries (it grasps and places where the estimates say): no
   privileged information at all.
@@ -139,7 +140,25 @@ def grasp_frame_features(attrs: dict, names: list[str], use_estimates: bool) -> 
             still_there = float(j not in moved or moved.index(j) > moved.index(k))
             rows += [rel[0], rel[1], abs(rel[0]), abs(rel[1]), float(np.hypot(*rel)),
                      np.cos(4 * (scene[j, 3] - yaw)), np.sin(4 * (scene[j, 3] - yaw)), still_there]
+        if not stacking:  # replacement picks from inside box A: how far its walls are along and across the fingers
+            rows += wall_clearances(scene[k, :2], yaw)
     return np.array(rows)
+
+
+def wall_clearances(xy: np.ndarray, yaw: float) -> list[float]:
+    """Distances from ``xy`` (inside box A) to the box's inner walls along +/- the finger axis at ``yaw``
+    and +/- the axis across it."""
+    from sim_worker.scene import SceneLayout
+
+    box = SceneLayout().box("box_a")
+    rel, half = xy - np.asarray(box.centre), np.asarray(box.inner_half)
+    out = []
+    for angle in (yaw, yaw + np.pi, yaw + np.pi / 2, yaw - np.pi / 2):
+        d = np.array([np.cos(angle), np.sin(angle)])
+        with np.errstate(divide="ignore"):
+            t = np.where(d > 0, (half - rel) / d, np.where(d < 0, (-half - rel) / d, np.inf))
+        out.append(float(t.min()))
+    return out
 
 
 def features(episodes: list[Episode], names: list[str], kind: str) -> np.ndarray:

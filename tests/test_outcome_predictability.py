@@ -89,3 +89,13 @@ def test_candidates_are_described_as_collect_records_them():
     np.testing.assert_array_equal(
         predictability.grasp_frame_features(described, NAMES, use_estimates=True),
         predictability.grasp_frame_features(recorded, NAMES, use_estimates=True))
+
+
+def test_wall_clearances_along_and_across_the_fingers():
+    # box A: centre (0.5, -0.22), inner half extents 0.10; a block 3 cm east of the centre
+    xy = np.array([0.53, -0.22])
+    along, back, left, right = predictability.wall_clearances(xy, yaw=0.0)
+    assert along == pytest.approx(0.07) and back == pytest.approx(0.13)
+    assert left == pytest.approx(0.10) and right == pytest.approx(0.10)
+    # fingers at 45 deg towards the north-east corner: the east wall is hit first, after 0.07 / cos 45
+    assert predictability.wall_clearances(xy, yaw=np.pi / 4)[0] == pytest.approx(0.07 * np.sqrt(2))
