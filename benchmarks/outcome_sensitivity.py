@@ -11,7 +11,8 @@ pixel by default). The plan is fixed; only contact physics sees the difference.
 From the ``K`` perturbed outcomes, ``p_i`` estimates each episode's success probability for a
 predictor that knows the state to that resolution. The ceiling is how well thresholding ``p_i``
 predicts the *unperturbed* outcome (an independent draw): balanced accuracy at the best threshold
-(optimistic: the threshold is chosen on the same episodes) and with a threshold chosen by 5-fold
+(success when ``p_i >=`` it, chosen by ``firp.metrics.choose_threshold`` as for the bundles; optimistic:
+the threshold is chosen on the same episodes) and with a threshold chosen by 5-fold
 cross-validation. A model that sees only the image cannot beat it by more than this estimate's
 noise, whatever its architecture.
 
@@ -35,6 +36,8 @@ from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
+
+from firp.metrics import balanced_accuracy, choose_threshold
 
 PERTURB_STREAM = 23  # separates the perturbation draws from the scene, perception and order streams
 
@@ -110,28 +113,14 @@ def read_done(path: Path) -> dict[Unit, dict]:
     return {unit_of(record): record for record in read_records(path)}
 
 
-def balanced_accuracy(y: np.ndarray, pred: np.ndarray) -> float:
-    tpr = float(pred[y].mean()) if y.any() else 0.0
-    tnr = float((~pred[~y]).mean()) if (~y).any() else 0.0
-    return (tpr + tnr) / 2
-
-
-def best_threshold(p: np.ndarray, y: np.ndarray) -> tuple[float, float]:
-    """The cut on ``p`` (predict success when ``p > cut``) with the highest balanced accuracy."""
-    cuts = np.concatenate([[-1.0], np.unique(p)])
-    scores = [balanced_accuracy(y, p > c) for c in cuts]
-    i = int(np.argmax(scores))
-    return float(cuts[i]), float(scores[i])
-
-
 def cross_validated_ba(p: np.ndarray, y: np.ndarray, folds: int = 5, seed: int = 0) -> float:
     """Balanced accuracy when each fold's threshold is chosen on the other folds."""
     order = np.random.default_rng(seed).permutation(len(y))
     pred = np.zeros(len(y), dtype=bool)
     for fold in np.array_split(order, folds):
         train = np.setdiff1d(order, fold)
-        cut, _ = best_threshold(p[train], y[train])
-        pred[fold] = p[fold] > cut
+        cut, _ = choose_threshold(y[train], p[train])
+        pred[fold] = p[fold] >= cut
     return balanced_accuracy(y, pred)
 
 
@@ -145,14 +134,14 @@ def analyse(records: list[dict]) -> dict:
     outcomes = np.array([r["perturbed_success"] for r in records], dtype=float)  # (N, K)
     p = outcomes.mean(axis=1)
     k = outcomes.shape[1]
-    flips = (outcomes != y[:, None]).any(axis=1)
-    cut, ba_best = best_threshold(p, y)
+    disagree = outcomes != y[:, None]  # (N, K)
+    cut, ba_best = choose_threshold(y, p)
     return {
         "plans": int(len(y)), "perturbations_per_plan": int(k),
         "success_rate": round(float(y.mean()), 3),
         "perturbed_success_rate": round(float(outcomes.mean()), 3),
-        "plans_whose_outcome_flips_under_some_perturbation": round(float(flips.mean()), 3),
-        "perturbed_runs_disagreeing_with_unperturbed": round(float((outcomes != y[:, None]).mean()), 3),
+        "plans_whose_outcome_flips_under_some_perturbation": round(float(disagree.any(axis=1).mean()), 3),
+        "perturbed_runs_disagreeing_with_unperturbed": round(float(disagree.mean()), 3),
         "plans_with_p_strictly_between_0_and_1": round(float(((p > 0) & (p < 1)).mean()), 3),
         "p_histogram": {f"{j}/{k}": int((outcomes.sum(axis=1) == j).sum()) for j in range(k + 1)},
         "ceiling_balanced_accuracy_best_threshold": round(ba_best, 3),

@@ -21,15 +21,15 @@ def record(seed: int, success: bool, perturbed: list[bool], order=ORDERS[0]) -> 
             "perturbed_success": perturbed, "perturbed_reasons": [""] * len(perturbed)}
 
 
-def test_best_threshold_and_balanced_accuracy_by_hand():
-    p = np.array([0.0, 0.25, 0.75, 1.0])
-    y = np.array([False, True, False, True])
-    # cut 0.0 -> predict [F, T, T, T]: TPR 1, TNR 1/2 -> 0.75; cut 0.75 -> [F, F, F, T]: 1/2, 1 -> 0.75;
-    # cut 0.25 -> [F, F, T, T]: 1/2, 1/2 -> 0.5; cut -1 -> all T: 0.5; cut 1 -> all F: 0.5
-    cut, ba = sensitivity.best_threshold(p, y)
-    assert ba == pytest.approx(0.75)
-    assert cut == 0.0  # the first of the tied cuts
-    assert sensitivity.balanced_accuracy(y, p > 0.25) == pytest.approx(0.5)
+def test_ceiling_threshold_by_hand():
+    # p = 0, 1/4, 3/4, 1 over four plans (4 perturbations each), outcomes F, T, F, T
+    records = [record(0, False, [False] * 4), record(1, True, [True, False, False, False]),
+               record(2, False, [True, True, True, False]), record(3, True, [True] * 4)]
+    out = sensitivity.analyse(records)
+    # success when p >= 1/8 -> [F, T, T, T]: TPR 1, TNR 1/2 -> 0.75; p >= 7/8 -> [F, F, F, T]: 1/2, 1 -> 0.75;
+    # p >= 1/2 -> [F, F, T, T]: 1/2, 1/2 -> 0.5. The tie goes to the cut nearer 0.5, then the lower one.
+    assert out["ceiling_balanced_accuracy_best_threshold"] == 0.75
+    assert out["ceiling_threshold"] == 0.125
 
 
 def test_analyse_counts_flips_and_the_ceiling():
