@@ -41,21 +41,11 @@ def _sibling(name: str):
 def candidate_attrs(task: str, seed: int, orders: list[list[str]]) -> list[dict]:
     """The attrs ``collect`` would record for each candidate plan of ``seed`` (no execution)."""
     from planner_client.tamp import PlannerConfig, TampPlanner
-    from sim_worker.perception import PoseErrorConfig, observation
-    from sim_worker.scene import SceneLayout
-    from sim_worker.tasks import sample_initial_blocks
+    from sim_worker.collect import plan_episode
+    from sim_worker.perception import PoseErrorConfig
 
-    layout = SceneLayout()
     planner = TampPlanner(PlannerConfig())
-    true_blocks = sample_initial_blocks(task, seed, layout)
-    obs = observation(true_blocks, seed, layout, PoseErrorConfig())
-    out = []
-    for order in orders:
-        plan = planner.plan(task, obs, tuple(order))
-        out.append({"task": task, "seed": seed, "block_order": list(order), "pose_estimates": obs["blocks"],
-                    "true_initial_blocks": true_blocks.tolist(), "grasp_yaws": plan.grasp_yaws,
-                    "place_targets": plan.place_targets})
-    return out
+    return [plan_episode(planner, task, seed, tuple(order), PoseErrorConfig()).attrs() for order in orders]
 
 
 def main() -> None:

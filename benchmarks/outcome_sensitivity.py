@@ -77,16 +77,15 @@ def perturbed_blocks(true_blocks: np.ndarray, seed: int, k: int, xy_std_m: float
 
 def run_episode(unit: tuple[int, tuple[str, ...]]) -> dict:
     """The plan of (seed, block order) executed from its true state and from ``K`` perturbed ones."""
+    from sim_worker.collect import plan_episode
     from sim_worker.executor import ExecutorConfig, execute_plan
-    from sim_worker.perception import PoseErrorConfig, observation
-    from sim_worker.tasks import sample_initial_blocks
+    from sim_worker.perception import PoseErrorConfig
 
     seed, order = unit
     config: SensitivityConfig = _worker["config"]
-    world, planner = _worker["world"], _worker["planner"]
-    true_blocks = sample_initial_blocks(config.task, seed, world.layout)
-    obs = observation(true_blocks, seed, world.layout, PoseErrorConfig())
-    plan = planner.plan(config.task, obs, order).actions
+    world = _worker["world"]
+    planned = plan_episode(_worker["planner"], config.task, seed, order, PoseErrorConfig(), world.layout)
+    true_blocks, plan = planned.true_blocks, planned.plan.actions
     no_frames = ExecutorConfig(record_frames=False)
     base = execute_plan(world, config.task, true_blocks, plan, no_frames)
     outcomes, reasons = [], []

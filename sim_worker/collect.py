@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from firp.contract import DEFAULT_T, FPS
 from firp.episodes import EpisodeDataset, EpisodeRecord, completed_indices, consolidate, write_episode_part
-from planner_client.tamp import PlannerConfig, TampPlanner, block_orders
+from planner_client.tamp import Plan, PlannerConfig, TampPlanner, block_orders
 from sim_worker.executor import ExecutorConfig, execute_plan
 from sim_worker.perception import PoseErrorConfig, observation
 from sim_worker.scene import BLOCK_NAMES, CAMERA, RenderConfig, SceneLayout
@@ -55,25 +55,48 @@ def episode_order(seed: int) -> tuple[str, ...]:
     return orders[int(rng.integers(len(orders)))]
 
 
+@dataclass(frozen=True)
+class PlannedEpisode:
+    """An episode before execution: its true initial state, what the planner was told, its plan."""
+
+    task: str
+    seed: int
+    order: tuple[str, ...]
+    true_blocks: np.ndarray  # (n, 4) x, y, z, yaw
+    observation: dict
+    plan: Plan
+
+    def attrs(self) -> dict:
+        """The record attrs that do not depend on the execution."""
+        return {"task": self.task, "seed": int(self.seed), "block_order": list(self.order),
+                "pose_estimates": self.observation["blocks"], "true_initial_blocks": self.true_blocks.tolist(),
+                "grasp_yaws": self.plan.grasp_yaws, "place_targets": self.plan.place_targets}
+
+
+def plan_episode(planner: TampPlanner, task: str, seed: int, order: tuple[str, ...], pose_error: PoseErrorConfig,
+                 layout: SceneLayout = SceneLayout(), sampler: SamplerConfig = SamplerConfig()) -> PlannedEpisode:
+    """Initial state from ``seed`` and the plan the planner makes from its noisy estimates of it."""
+    true_blocks = sample_initial_blocks(task, seed, layout, sampler)
+    obs = observation(true_blocks, seed, layout, pose_error)
+    return PlannedEpisode(task, seed, tuple(order), true_blocks, obs, planner.plan(task, obs, order))
+
+
 def simulate_episode(world: World, planner: TampPlanner, task: str, seed: int, order: tuple[str, ...],
                      pose_error: PoseErrorConfig, sampler: SamplerConfig = SamplerConfig(),
                      record_frames: bool = True) -> EpisodeRecord:
     """One labelled episode: initial state from ``seed``, plan from the noisy estimates, execution."""
-    true_blocks = sample_initial_blocks(task, seed, world.layout, sampler)
-    obs = observation(true_blocks, seed, world.layout, pose_error)
-    plan = planner.plan(task, obs, order)
-    result = execute_plan(world, task, true_blocks, plan.actions, ExecutorConfig(record_frames=record_frames))
-    frames = result.frames if result.frames is not None else np.zeros((len(plan.actions), 1, 1, 3), np.uint8)
+    planned = plan_episode(planner, task, seed, order, pose_error, world.layout, sampler)
+    actions = planned.plan.actions
+    result = execute_plan(world, task, planned.true_blocks, actions, ExecutorConfig(record_frames=record_frames))
+    frames = result.frames if result.frames is not None else np.zeros((len(actions), 1, 1, 3), np.uint8)
     return EpisodeRecord(
         frames=frames,
-        actions=plan.actions.astype(np.float32),
+        actions=actions.astype(np.float32),
         states=result.states,
         success=bool(result.success),
         attrs={
-            "task": task, "seed": int(seed), "block_order": list(order), "reason": result.reason,
-            "pose_estimates": obs["blocks"], "true_initial_blocks": true_blocks.tolist(),
-            "final_blocks": result.final_block_poses.tolist(), "grasp_yaws": plan.grasp_yaws,
-            "place_targets": plan.place_targets, "sim_seconds": result.sim_seconds, "unstable": result.unstable,
+            **planned.attrs(), "reason": result.reason, "final_blocks": result.final_block_poses.tolist(),
+            "sim_seconds": result.sim_seconds, "unstable": result.unstable,
         },
     )
 
