@@ -57,6 +57,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None, help="default: docs/results/grasp_frame_scorer_<task>.json")
     args = parser.parse_args()
     predictability, replay = _sibling("outcome_predictability"), _sibling("replan_threshold")
+    from planner_client.loop import read_records
     from sim_worker.scene import BLOCK_NAMES
 
     names = list(BLOCK_NAMES)
@@ -69,8 +70,8 @@ def main() -> None:
     splits = {}
     for split in ("calibration", "test"):
         path = args.records / f"{args.task}-{split}.jsonl"
-        firp_scores, success, bundle = replay.read(path)
-        records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+        records = read_records(path)
+        firp_scores, success, bundle = replay.arrays(records, path)
         episodes = [(a, False) for r in records for a in candidate_attrs(args.task, int(r["seed"]), r["orders"])]
         scores = model.predict_proba(predictability.features(episodes, names, "grasp_frame_plan"))[:, 1]
         splits[split] = (scores.reshape(success.shape), success, firp_scores, bundle)

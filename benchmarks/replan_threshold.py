@@ -84,7 +84,11 @@ def collect(task: str, split: str, trials: int, bundle_dir: Path, out: Path, max
 
 def read(path: Path) -> tuple[np.ndarray, np.ndarray, dict]:
     """``(N, K)`` scores and successes of a records file, and the model it was scored with."""
-    records = read_records(path)
+    return arrays(read_records(path), path)
+
+
+def arrays(records: list[dict], path: Path) -> tuple[np.ndarray, np.ndarray, dict]:
+    """``(N, K)`` scores and successes of records read from ``path``, and the model they were scored with."""
     if not records:
         sys.exit(f"{path}: no trials recorded yet")
     return (np.array([r["scores"] for r in records]), np.array([r["success"] for r in records], dtype=bool),
