@@ -14,7 +14,10 @@ descriptions of each episode's scene:
   fingers;
 * ``grasp_frame_plan`` -- the grasp-frame description built from the planner's *estimates* only,
   i.e. from what the plan itself carries (it grasps and places where the estimates say): no
-  privileged information at all.
+  privileged information at all;
+* ``plan_fk`` -- what the learned models can be given: :func:`firp.model.plan_geometry.plan_geometry`
+  on the plan's joint targets (forward kinematics of each grasp and release; the recorded plan of a
+  dataset, the re-made plan of a simulated episode -- the planner is deterministic).
 
 The contrast between ``raw`` and ``grasp_frame_*`` tells whether the outcome is hard because it is
 chaotic or because it is a simple function in a frame the raw coordinates hide.
@@ -45,7 +48,8 @@ from sklearn.preprocessing import StandardScaler
 from tqdm import tqdm
 
 Episode = tuple[dict, bool]  # (record attrs as sim_worker.collect writes them, success)
-FEATURE_SETS = ("raw", "grasp_frame_true", "grasp_frame_plan")
+FEATURE_SETS = ("raw", "grasp_frame_true", "grasp_frame_plan", "plan_fk")
+PLAN_KEY = "_plan"  # a dataset episode's recorded plan, kept beside its attrs
 
 
 def dataset_episodes(path: Path) -> tuple[list[Episode], list[str]]:
@@ -53,7 +57,8 @@ def dataset_episodes(path: Path) -> tuple[list[Episode], list[str]]:
     from firp.episodes import EpisodeDataset
 
     with EpisodeDataset(path) as ds:
-        return [(ds.demo_attrs(d), ds.success(d)) for d in ds.demo_names], list(ds.attrs["block_names"])
+        return [({**ds.demo_attrs(d), PLAN_KEY: ds.actions(d)}, ds.success(d)) for d in ds.demo_names], \
+            list(ds.attrs["block_names"])
 
 
 _worker: dict = {}
@@ -161,7 +166,33 @@ def wall_clearances(xy: np.ndarray, yaw: float) -> list[float]:
     return out
 
 
+def episode_plan(attrs: dict) -> np.ndarray:
+    """The episode's plan (T, 16): recorded, or made again from its seed and order (deterministic)."""
+    if PLAN_KEY in attrs:
+        return np.asarray(attrs[PLAN_KEY])
+    from planner_client.tamp import PlannerConfig, TampPlanner
+    from sim_worker.collect import plan_episode
+    from sim_worker.perception import PoseErrorConfig
+
+    planner = _worker.setdefault("planner", TampPlanner(PlannerConfig()))
+    planned = plan_episode(planner, attrs["task"], int(attrs["seed"]), tuple(attrs["block_order"]), PoseErrorConfig())
+    return np.asarray(planned.plan.actions)
+
+
+def plan_fk_features(episodes: list[Episode]) -> np.ndarray:
+    """:func:`firp.model.plan_geometry.plan_geometry` of each plan (constant columns dropped)."""
+    import torch
+
+    from firp.model.plan_geometry import plan_geometry
+
+    plans = torch.from_numpy(np.stack([episode_plan(a) for a, _ in episodes]).astype(np.float64))
+    X = plan_geometry(plans).numpy()
+    return X[:, X.std(axis=0) > 1e-9]
+
+
 def features(episodes: list[Episode], names: list[str], kind: str) -> np.ndarray:
+    if kind == "plan_fk":
+        return plan_fk_features(episodes)
     if kind == "raw":
         return np.array([raw_features(a, names) for a, _ in episodes])
     return np.array([grasp_frame_features(a, names, use_estimates=kind == "grasp_frame_plan") for a, _ in episodes])

@@ -62,15 +62,18 @@ def add_model_flags(parser: argparse.ArgumentParser) -> None:
                    help="width of the RSSM's two-layer MLPs")
     g.add_argument("--head-temperature", type=positive_float("--head-temperature"),
                    default=PRODUCT_MODEL["head_temperature"], help="attention temperature L of the success head")
+    g.add_argument("--plan-geometry", action="store_true",
+                   help="give every plan-reading model the plan's grasp-frame description (firp.model.plan_geometry)")
 
 
 def model_config_from(args: argparse.Namespace, image_size: int):
     """The :class:`~firp.model.config.FIRPConfig` the flags of :func:`add_model_flags` describe."""
-    from firp.model.config import EncoderConfig, FIRPConfig, HeadConfig, RSSMConfig
+    from firp.model.config import EncoderConfig, FIRPConfig, GeometryConfig, HeadConfig, RSSMConfig
 
     return FIRPConfig(encoder=EncoderConfig(image_size=image_size), action_chunk=args.action_chunk,
                       rssm=RSSMConfig(deter_dim=args.deter_dim, hidden=args.hidden),
-                      head=HeadConfig(temperature=args.head_temperature))
+                      head=HeadConfig(temperature=args.head_temperature),
+                      geometry=GeometryConfig(enabled=bool(getattr(args, "plan_geometry", False))))
 
 
 def add_training_flags(parser: argparse.ArgumentParser) -> None:

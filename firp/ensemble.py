@@ -273,6 +273,8 @@ class _FusedFIRP:
         m0 = models[0]
         if not all(isinstance(m, FIRP) for m in models):
             raise TypeError("only FIRP members are fused")
+        if any(m.geometry is not None for m in models):
+            raise TypeError("members with the plan-geometry head input are not fused (they run vmapped)")
         rssm_cfg = m0.rssm.cfg
         self.members = list(models)
         self.chunk = m0.cfg.action_chunk
@@ -421,7 +423,7 @@ class EnsembleScorer:
                 else one_by_one
             if strategy == "vmap":
                 vmapped += batched
-            elif kind in _FUSED_KINDS:
+            elif kind in _FUSED_KINDS and not bundle.configs[idx[0]].geometry.enabled:  # fused: the paper's head only
                 fused.append((idx, _FusedFIRP(members)))  # type: ignore[arg-type]
             else:
                 rest_vmapped += batched

@@ -182,7 +182,8 @@ def main(argv: list[str] | None = None) -> int:
     command = f"python -m firp.evaluate --data {args.data} --repeats {args.repeats} --methods {' '.join(args.methods)} " \
               f"--epochs {args.epochs} --threads {args.threads} --head-temperature {args.head_temperature} " \
               f"--action-chunk {args.action_chunk} --deter-dim {args.deter_dim} --hidden {args.hidden} " \
-              f"--patience {args.patience} --min-epochs {args.min_epochs} --lambda {args.overshooting} --prediction-weight {args.prediction_weight}"
+              f"--patience {args.patience} --min-epochs {args.min_epochs} --lambda {args.overshooting} --prediction-weight {args.prediction_weight}" \
+              + (" --plan-geometry" if args.plan_geometry else "")
     (out / "results.json").write_text(json.dumps({
         "command": command, "dataset": str(args.data), "dataset_hash": data.dataset_hash,
         "machine": {"python": platform.python_version(), "torch": torch.__version__, "threads": args.threads},

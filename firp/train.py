@@ -133,6 +133,8 @@ def train_model(cfg: TrainConfig, train: SequenceData, valid: SequenceData, chec
     model = build_model(cfg.kind, model_cfg)
     if hasattr(model, "action_norm"):
         model.action_norm.fit(train.actions)  # training-set statistics, saved with the weights
+    if getattr(model, "geometry", None) is not None:
+        model.geometry.fit(train.actions)  # likewise for the grasp-frame description
     optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     ckpt = Path(checkpoint_dir) if checkpoint_dir else None
     history: list[dict] = []

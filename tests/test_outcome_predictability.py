@@ -99,3 +99,29 @@ def test_wall_clearances_along_and_across_the_fingers():
     assert left == pytest.approx(0.10) and right == pytest.approx(0.10)
     # fingers at 45 deg towards the north-east corner: the east wall is hit first, after 0.07 / cos 45
     assert predictability.wall_clearances(xy, yaw=np.pi / 4)[0] == pytest.approx(0.07 * np.sqrt(2))
+
+
+def test_a_simulated_episodes_plan_is_made_again_exactly_and_described_by_forward_kinematics():
+    """``plan_fk`` re-makes a simulated episode's plan from its cached attrs: it must be the plan that
+    was executed (the planner is deterministic), and its description must place the grasps where the
+    planner's estimates are."""
+    import json
+
+    from planner_client.tamp import PlannerConfig, TampPlanner
+    from sim_worker.collect import episode_order, simulate_episode
+    from sim_worker.perception import PoseErrorConfig
+    from sim_worker.scene import RenderConfig, SceneLayout
+    from sim_worker.world import World
+
+    with World(SceneLayout(), RenderConfig.for_task("stacking", 16, 16)) as world:
+        records = [simulate_episode(world, TampPlanner(PlannerConfig()), "stacking", seed, episode_order(seed),
+                                    PoseErrorConfig(), record_frames=False) for seed in (5, 6)]
+    cached = json.loads(json.dumps(records[0].attrs))  # what the JSONL cache holds: no plan
+    assert predictability.PLAN_KEY not in cached
+    np.testing.assert_array_equal(predictability.episode_plan(cached).astype(np.float32), records[0].actions)
+    recorded = {**cached, predictability.PLAN_KEY: records[0].actions}  # a dataset episode
+    other = {**records[1].attrs, predictability.PLAN_KEY: records[1].actions}
+    X = predictability.plan_fk_features([(cached, True), (recorded, True), (other, False)])
+    assert X.shape[1] > 20  # the columns that differ between the two scenes
+    np.testing.assert_allclose(X[0], X[1], atol=1e-5)  # float32 recorded plan vs the re-made float64 one
+    assert np.abs(X[0] - X[2]).max() > 1e-3

@@ -16,6 +16,10 @@ Baselines:
   from ``e_1``, then FIRP's attention head;
 * :class:`Oracle` -- features of the frames actually executed (not available before execution:
   an upper bound) + a 2-layer MLP.
+
+With ``cfg.geometry.enabled`` every plan-reading model also gets the plan's grasp-frame
+description (:mod:`firp.model.plan_geometry`): the MLPs in their input, the GRU baseline in its
+head, as FIRP does; the Oracle reads no plan and ignores it.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from firp.model.encoder import FeatureProjection
 from firp.model.firp import FIRP, Score, first_step
 from firp.model.head import SuccessHead
 from firp.model.ops import last_valid_index
+from firp.model.plan_geometry import PlanGeometry
 
 __all__ = ["AMLP", "AMLPImage", "GRUBaseline", "MODEL_KINDS", "ModelKind", "Oracle", "build_model", "plan_vector"]
 
@@ -70,12 +75,18 @@ class _PlanMLP(nn.Module):
         self.cfg = cfg
         b = cfg.baseline
         d_plan = cfg.action_dim * (b.max_T if b.plan_pooling == "flatten" else 1)
-        self.mlp = _mlp3(d_plan + extra_dim, b.hidden)
+        self.geometry = PlanGeometry(cfg.geometry.max_picks) if cfg.geometry.enabled else None
+        d_geometry = self.geometry.dim if self.geometry is not None else 0
+        self.mlp = _mlp3(d_plan + d_geometry + extra_dim, b.hidden)
         self.action_norm = ActionNormalizer(cfg.action_dim)
 
     def _plan(self, actions: Tensor, mask: Tensor | None) -> Tensor:
+        """(B, D_plan [+ G]): the standardised plan, and its grasp-frame description when enabled."""
         b = self.cfg.baseline
-        return plan_vector(self.action_norm(actions), mask, b.plan_pooling, b.max_T)
+        plan = plan_vector(self.action_norm(actions), mask, b.plan_pooling, b.max_T)
+        if self.geometry is None:
+            return plan
+        return torch.cat([plan, self.geometry(actions, mask)], dim=-1)
 
 
 class AMLP(_PlanMLP):
@@ -133,8 +144,13 @@ class GRUBaseline(nn.Module):
         self.init = nn.Linear(E + A, Hg)
         self.gru = nn.GRU(A, Hg, batch_first=True)
         self.readout = nn.Linear(Hg, E)
-        self.head = SuccessHead(cfg.head, E)
+        self.geometry = PlanGeometry(cfg.geometry.max_picks) if cfg.geometry.enabled else None
+        self.head = SuccessHead(cfg.head, E, context_dim=self.geometry.dim if self.geometry is not None else 0,
+                                context_hidden=cfg.geometry.hidden)
         self.action_norm = ActionNormalizer(A)
+
+    def _context(self, actions: Tensor, mask: Tensor | None) -> Tensor | None:
+        return self.geometry(actions, mask) if self.geometry is not None else None
 
     def _predict(self, e1: Tensor, actions: Tensor) -> Tensor:
         """``e1`` (B, E), ``actions`` (B, T, A) -> [e_1, e^_2..e^_T] (B, T, E)."""
@@ -149,12 +165,12 @@ class GRUBaseline(nn.Module):
         """``features`` (B, T, Db): frame 0 drives the prediction, all frames give targets ``e``."""
         e = self.projection(features)  # (B, T, E)
         seq = self._predict(e[:, 0], actions)
-        logits, weights = self.head(seq, mask)
+        logits, weights = self.head(seq, mask, self._context(actions, mask))
         return {"logits": logits, "weights": weights, "features_pred": seq, "e": e}
 
     def score(self, features: Tensor, actions: Tensor, mask: Tensor | None = None) -> Score:
         seq = self._predict(self.projection(first_step(features)), actions)
-        logits, weights = self.head(seq, mask)
+        logits, weights = self.head(seq, mask, self._context(actions, mask))
         return Score(logits, weights, seq)
 
 

@@ -122,6 +122,26 @@ class HeadConfig:
 
 
 @dataclass(frozen=True)
+class GeometryConfig:
+    """The plan's grasp-frame description (:mod:`firp.model.plan_geometry`) as an extra input.
+
+    Off by default (the paper's models read the plan only as per-step joint targets). On, every
+    model gets the standardised description of the plan's picks, computed from the plan alone by
+    forward kinematics: the MLP baselines concatenate it to their input, FIRP and the GRU baseline
+    feed it through a two-layer MLP (``hidden`` wide) into the success head beside the pooled
+    sequence. ``max_picks`` pick-and-place pairs are described (3: the tasks' three blocks).
+    """
+
+    enabled: bool = False
+    max_picks: int = 3
+    hidden: int = 64
+
+    def __post_init__(self) -> None:
+        _positive("max_picks", self.max_picks)
+        _positive("hidden", self.hidden)
+
+
+@dataclass(frozen=True)
 class BaselineConfig:
     """Baselines of the paper (A-MLP, A-MLP+image, GRU, Oracle).
 
@@ -208,6 +228,7 @@ class FIRPConfig:
     head: HeadConfig = field(default_factory=HeadConfig)
     baseline: BaselineConfig = field(default_factory=BaselineConfig)
     loss: LossConfig = field(default_factory=LossConfig)
+    geometry: GeometryConfig = field(default_factory=GeometryConfig)
     action_dim: int = PLAN_WIDTH
     action_chunk: int = 1
 
@@ -224,7 +245,7 @@ class FIRPConfig:
         """Inverse of :meth:`to_dict`; unknown keys are an error (a typo must not pass silently)."""
         parts = {
             "encoder": EncoderConfig, "rssm": RSSMConfig, "head": HeadConfig,
-            "baseline": BaselineConfig, "loss": LossConfig,
+            "baseline": BaselineConfig, "loss": LossConfig, "geometry": GeometryConfig,
         }
         known = {f.name for f in fields(cls)}
         unknown = set(data) - known

@@ -8,6 +8,10 @@
 The weights sum to 1 over t for every sequence; the service shows them to point at the step where
 a failure becomes evident, which is why the head returns them.
 
+With ``context_dim > 0`` the head also reads a per-sequence context vector (the plan's grasp-frame
+description, :mod:`firp.model.plan_geometry`) through a two-layer MLP, concatenated to ``pooled``
+before the linear score; off (0) it is exactly the paper's head.
+
 About the temperature ``L``: the paper writes ``e^{cos / L}`` with ``L = 20``. As ``cos`` lies in
 [-1, 1], ``cos / 20`` lies in [-0.05, 0.05], so no weight can exceed another by more than a factor
 ``e^{0.1} = 1.105``: at ``L = 20`` the pooling is practically the plain mean over time (checked in
@@ -31,12 +35,14 @@ __all__ = ["SuccessHead"]
 class SuccessHead(nn.Module):
     """Attention-pooled success classifier over a sequence of features ``(B, T, E)``."""
 
-    def __init__(self, cfg: HeadConfig, feature_dim: int):
+    def __init__(self, cfg: HeadConfig, feature_dim: int, context_dim: int = 0, context_hidden: int = 64):
         super().__init__()
         self.cfg = cfg
         self.q = mlp2(feature_dim, cfg.hidden, cfg.q_dim)
         self.prototypes = nn.Parameter(torch.randn(cfg.n_prototypes, cfg.q_dim))  # phi_i (M, Q)
-        self.out = nn.Linear(cfg.q_dim, 1)
+        # optional per-sequence context (the plan's grasp-frame description), read beside the pooled q
+        self.context = mlp2(context_dim, context_hidden, context_hidden) if context_dim else None
+        self.out = nn.Linear(cfg.q_dim + (context_hidden if context_dim else 0), 1)
 
     def attention(self, q: Tensor, mask: Tensor | None = None) -> Tensor:
         """Eq. (5): ``q`` (B, T, Q) -> ``w`` (B, T), rows sum to 1 over the valid steps."""
@@ -46,10 +52,17 @@ class SuccessHead(nn.Module):
             logits = logits.masked_fill(~mask.bool().unsqueeze(1), float("-inf"))
         return torch.softmax(logits, dim=-1).mean(dim=1)  # softmax over t, mean over prototypes
 
-    def forward(self, features: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """``features`` (B, T, E), ``mask`` (B, T) bool (True = real step, at least one per row)
+    def forward(self, features: Tensor, mask: Tensor | None = None, context: Tensor | None = None
+                ) -> tuple[Tensor, Tensor]:
+        """``features`` (B, T, E), ``mask`` (B, T) bool (True = real step, at least one per row),
+        ``context`` (B, C) when the head was built with ``context_dim = C``
         -> ``logits`` (B,) and ``weights`` (B, T) (0 on masked steps)."""
+        if (context is None) != (self.context is None):
+            raise ValueError("this head was built " + ("with" if self.context is not None else "without")
+                             + " a context input; pass context accordingly")
         q = self.q(features)  # (B, T, Q)
         w = self.attention(q, mask)  # (B, T)
         pooled = torch.einsum("bt,btq->bq", w, q)  # (B, Q)
+        if self.context is not None:
+            pooled = torch.cat([pooled, torch.relu(self.context(context))], dim=-1)  # (B, Q + Hc)
         return self.out(pooled).squeeze(-1), w

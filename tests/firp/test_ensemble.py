@@ -330,3 +330,28 @@ def test_the_fused_scene_cache_matches_by_value(tmp_path):
         f = fused.image_features(random_image(seed=seed))
         np.testing.assert_allclose(fused.score_features(f, plans).probabilities,
                                    loop.score_features(f, plans).probabilities, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("strategy", ["auto", "fused", "vmap"])
+def test_plan_geometry_members_run_vmapped_not_fused_and_score_like_the_loop(tmp_path, strategy):
+    """Members reading the plan's grasp-frame description keep their fitted statistics through the
+    bundle and score the same on every path (the fused rollout knows only the paper's head)."""
+    cfg = dataclasses.replace(TINY, geometry=dataclasses.replace(TINY.geometry, enabled=True))
+    plans = valid_plans(6, 16, seed=3)
+    members = []
+    for kind in ("firp", "firp", "a_mlp_image"):
+        model = build_model(kind, cfg).eval()
+        model.geometry.fit(torch.from_numpy(plans).float())
+        members.append(BundleMember(kind, cfg, model, {"balanced_accuracy": 0.6}))
+    bundle = load_bundle(export_tiny(tmp_path / "b", members))
+    assert torch.equal(bundle.models[0].geometry.std, members[0].model.geometry.std)
+    scorer = EnsembleScorer(bundle, strategy=strategy)
+    assert all(type(runner).__name__ != "_FusedFIRP" for _, runner in scorer._small + scorer._large)
+    image = random_image()
+    got, want = scorer.score(image, plans), EnsembleScorer(bundle, strategy="loop").score(image, plans)
+    np.testing.assert_allclose(got.member_probabilities, want.member_probabilities, atol=1e-5, rtol=0)
+    with torch.no_grad():
+        enc = ImageEncoder(TINY.encoder, backbone=bundle.backbone)
+        feats = enc.backbone_features(image[None]).expand(len(plans), -1)
+        ref = torch.sigmoid(members[0].model.score(feats, torch.from_numpy(plans).float()).logits).numpy()
+    np.testing.assert_allclose(got.member_probabilities[0], ref, atol=1e-5, rtol=0)

@@ -1,0 +1,167 @@
+"""The plan's grasp-frame description: forward kinematics, pick events, the description, its use in models."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from firp.contract import CATEGORY_INDEX, JOINT_LOWER, JOINT_UPPER, N_CATEGORIES
+from firp.model.config import EncoderConfig, FIRPConfig, GeometryConfig, RSSMConfig
+from firp.model.baselines import build_model
+from firp.model.plan_geometry import PlanGeometry, geometry_dim, panda_tcp_pose, pick_events, plan_geometry, tcp_yaw
+from planner_client.ik import PandaIK, rotation_yaw
+from planner_client.tamp import PlannerConfig, TampPlanner
+from sim_worker.collect import plan_episode
+from sim_worker.perception import PoseErrorConfig
+
+ORDER = ("red", "green", "blue")
+
+
+@pytest.fixture(scope="module")
+def planned():
+    planner = TampPlanner(PlannerConfig())
+    return {task: [plan_episode(planner, task, seed, ORDER, PoseErrorConfig()) for seed in range(3)]
+            for task in ("stacking", "replacement")}
+
+
+def _actions(episodes) -> torch.Tensor:
+    return torch.tensor(np.stack([np.asarray(e.plan.actions) for e in episodes]), dtype=torch.float64)
+
+
+def test_forward_kinematics_matches_the_sims_panda():
+    ik, rng = PandaIK(), np.random.default_rng(0)
+    for _ in range(50):
+        q = rng.uniform(JOINT_LOWER[:7], JOINT_UPPER[:7])
+        pos, rot = ik.forward(q)
+        pos_t, rot_t = panda_tcp_pose(torch.tensor(q, dtype=torch.float64))
+        np.testing.assert_allclose(pos_t.numpy(), pos, atol=1e-9)
+        np.testing.assert_allclose(rot_t.numpy(), rot, atol=1e-6)
+        assert float(tcp_yaw(rot_t)) == pytest.approx(rotation_yaw(rot), abs=1e-6)
+
+
+def test_forward_kinematics_batches_and_rejects_a_wrong_width():
+    q = torch.zeros(2, 5, 7)
+    pos, rot = panda_tcp_pose(q)
+    assert pos.shape == (2, 5, 3) and rot.shape == (2, 5, 3, 3)
+    with pytest.raises(ValueError, match="7 arm joints"):
+        panda_tcp_pose(torch.zeros(3, 9))
+
+
+def test_pick_events_recover_the_planners_grasps_and_places(planned):
+    for task, episodes in planned.items():
+        ev = pick_events(_actions(episodes))
+        for b, ep in enumerate(episodes):
+            moved = ep.order[1:] if task == "stacking" else ep.order
+            assert ev["present"][b].tolist() == [True] * len(moved) + [False] * (3 - len(moved))
+            for k, name in enumerate(moved):
+                estimate = np.asarray(ep.observation["blocks"][name]["position"])
+                np.testing.assert_allclose(ev["grasp_pos"][b, k, :2].numpy(), estimate[:2], atol=1e-3)
+                assert float(ev["grasp_yaw"][b, k]) == pytest.approx(ep.plan.grasp_yaws[k], abs=2e-3)
+                target = np.asarray(ep.plan.place_targets[k])
+                np.testing.assert_allclose(ev["release_pos"][b, k].numpy(), target[:3], atol=1e-3)
+            # absent picks are zeros
+            assert torch.all(ev["grasp_pos"][b, len(moved):] == 0)
+
+
+def _one_hot_plan(categories: list[str]) -> torch.Tensor:
+    a = torch.zeros(1, len(categories), N_CATEGORIES + 9)
+    for t, c in enumerate(categories):
+        a[0, t, CATEGORY_INDEX[c]] = 1.0
+    return a
+
+
+def test_pick_events_pair_each_grasp_with_the_next_release_and_respect_the_mask():
+    cats = ["move_before_grasp", "grasp", "grasp", "hold", "release", "release", "move_after_release",
+            "grasp", "hold", "release", "move"]
+    a = _one_hot_plan(cats)
+    ev = pick_events(a, max_picks=3)
+    assert ev["present"].tolist() == [[True, True, False]]
+    # a mask that hides the second release leaves the second grasp without a release: not a pick
+    mask = torch.ones(1, len(cats), dtype=torch.bool)
+    mask[0, 9:] = False
+    assert pick_events(a, mask, max_picks=3)["present"].tolist() == [[True, False, False]]
+
+
+def test_description_is_invariant_to_turning_and_shifting_the_whole_scene_in_its_grasp_frame_parts():
+    """Offsets in the grasp frame do not change when the robot turns about its base axis (joint 1)."""
+    planner = TampPlanner(PlannerConfig())
+    ep = plan_episode(planner, "stacking", 0, ORDER, PoseErrorConfig())
+    a = _actions([ep])
+    turned = a.clone()
+    turned[..., N_CATEGORIES] += 0.3  # joint 1: the whole plan turned about the world z axis
+    g, g_turned = plan_geometry(a), plan_geometry(turned)
+    P = 3
+    per_pick = geometry_dim(P) // P
+    for k in range(2):  # the two picks of stacking
+        row, row_t = g[0, k * per_pick:(k + 1) * per_pick], g_turned[0, k * per_pick:(k + 1) * per_pick]
+        rel, rel_t = row[8:], row_t[8:]  # everything after presence, grasp xyz, release xyz, rise
+        torch.testing.assert_close(rel, rel_t, atol=1e-9, rtol=0)
+        # while the world positions do change
+        assert not torch.allclose(row[1:4], row_t[1:4])
+
+
+def test_description_by_hand_for_two_picks(monkeypatch):
+    """Hand-made events: check one grasp-frame relation against numbers worked out on paper."""
+    from firp.model import plan_geometry as pg
+
+    grasp_pos = torch.tensor([[[0.5, 0.0, 0.02], [0.5, 0.1, 0.02], [0.0, 0.0, 0.0]]], dtype=torch.float64)
+    release_pos = torch.tensor([[[0.4, 0.0, 0.06], [0.4, 0.0, 0.10], [0.0, 0.0, 0.0]]], dtype=torch.float64)
+    events = {"grasp_pos": grasp_pos, "release_pos": release_pos,
+              "grasp_yaw": torch.tensor([[math.pi / 2, 0.0, 0.0]], dtype=torch.float64),
+              "release_yaw": torch.tensor([[0.1, 0.1, 0.0]], dtype=torch.float64),
+              "present": torch.tensor([[True, True, False]])}
+    monkeypatch.setattr(pg, "pick_events", lambda *args, **kw: events)
+    g = pg.plan_geometry(torch.zeros(1, 8, 16, dtype=torch.float64))
+    row = g[0, : geometry_dim() // 3]
+    assert row[0] == 1.0  # present
+    torch.testing.assert_close(row[1:4], grasp_pos[0, 0])
+    assert float(row[7]) == pytest.approx(0.0)  # the first release rises 0 over itself
+    # pick 1's grasp seen from pick 0's grasp, turned by 90 deg: world +y 0.1 -> frame x +0.1, y 0
+    rel = row[8:16]
+    assert rel[:2].tolist() == pytest.approx([0.1, 0.0], abs=1e-12)
+    assert float(rel[4]) == pytest.approx(0.1)
+    # relative yaw -90 deg: cos(4 * -pi/2) = 1, sin = 0; pick 1 is picked later: still there
+    assert rel[5:].tolist() == pytest.approx([1.0, 0.0, 1.0], abs=1e-12)
+    # the absent third pick contributes zeros
+    assert torch.all(g[0, 2 * geometry_dim() // 3:] == 0)
+
+
+def test_standardised_geometry_and_models_reading_it(planned):
+    a = _actions(planned["stacking"] + planned["replacement"]).float()
+    enc = PlanGeometry()
+    enc.fit(a)
+    z = enc(a)
+    assert z.shape == (6, geometry_dim()) and torch.isfinite(z).all()
+    varying = enc.std > enc.min_std
+    assert torch.allclose(z[:, varying].mean(0), torch.zeros(int(varying.sum())), atol=1e-4)
+    cfg = FIRPConfig(encoder=EncoderConfig(feature_dim=8, projection_hidden=0),
+                     rssm=RSSMConfig(deter_dim=8, stoch_dim=4, hidden=8), geometry=GeometryConfig(enabled=True),
+                     action_chunk=8)
+    feats = torch.randn(6, a.shape[1], cfg.encoder.backbone_dim)
+    for kind in ("firp", "a_mlp", "a_mlp_image", "gru"):
+        model = build_model(kind, cfg)
+        assert model.geometry is not None
+        model.geometry.fit(a)
+        model.forward_train(feats, a)["logits"].sum().backward()
+        head_inputs = [p for n, p in model.named_parameters() if "context" in n or n.startswith("mlp.0")]
+        assert head_inputs and all(p.grad is not None and p.grad.abs().sum() > 0 for p in head_inputs), kind
+        # the description changes the score: move one block's grasp (joint 1 of the first grasp run)
+        moved = a.clone()
+        t = int((a[0, :, CATEGORY_INDEX["grasp"]] > 0).nonzero()[0])
+        moved[0, t, N_CATEGORIES] += 0.05
+        with torch.no_grad():
+            s0 = model.score(feats[:, 0], a).logits
+            s1 = model.score(feats[:, 0], moved).logits
+        assert s0[0] != s1[0] and torch.equal(s0[1:], s1[1:]), kind
+
+
+def test_geometry_is_off_by_default_and_old_configs_load():
+    cfg = FIRPConfig()
+    assert cfg.geometry.enabled is False
+    assert build_model("firp", cfg).geometry is None
+    d = cfg.to_dict()
+    d.pop("geometry")  # a manifest written before the option existed
+    assert FIRPConfig.from_dict(d) == cfg
+    with pytest.raises(ValueError, match="max_picks"):
+        GeometryConfig(max_picks=0)
