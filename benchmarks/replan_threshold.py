@@ -19,6 +19,14 @@ a JSONL file (resumable: ``--resume``); the analysis prints a table, writes JSON
     MUJOCO_GL=egl .venv/bin/python benchmarks/replan_threshold.py --task stacking --split calibration --trials 100
     MUJOCO_GL=egl .venv/bin/python benchmarks/replan_threshold.py --task stacking --split test --trials 50
     .venv/bin/python benchmarks/replan_threshold.py --task stacking --analyse-only
+
+Another bundle on the *same* candidates, without executing them again (``--rescore DIR``: each
+trial's scene is set up from its seed, its recorded orders planned again -- planner and scene are
+deterministic -- and scored by ``--bundle``; the recorded outcomes are kept; records go to
+``--records-dir``):
+
+    MUJOCO_GL=egl .venv/bin/python benchmarks/replan_threshold.py --task stacking --rescore docs/results/replan_threshold \
+        --bundle runs/bundle-geometry --records-dir runs/replan_threshold_geometry --out docs/results/replan_threshold_stacking_geometry.json
 """
 
 from __future__ import annotations
@@ -79,6 +87,38 @@ def collect(task: str, split: str, trials: int, bundle_dir: Path, out: Path, max
                       "success": successes, "seconds": round(time.perf_counter() - started, 3)}
             sink.write(json.dumps(record) + "\n")
             sink.flush()
+    worlds.close()
+
+
+def rescore(task: str, split: str, source: Path, bundle_dir: Path, out: Path, progress: bool) -> None:
+    """Score the candidates recorded in ``source`` with another bundle; outcomes are copied, not re-run."""
+    import torch
+
+    from firp.bundle import load_bundle
+    from firp.ensemble import EnsembleScorer
+    from planner_client.tamp import TampPlanner
+    from sim_worker.worlds import TaskWorlds
+
+    torch.set_num_threads(1)
+    records = read_records(source)
+    if not records:
+        sys.exit(f"--rescore: {source} holds no trials")
+    scorer = EnsembleScorer(load_bundle(bundle_dir))
+    model = {"name": scorer.bundle.manifest.get("name"), "version": scorer.bundle.manifest.get("version"),
+             "threshold": scorer.threshold, "bundle": str(bundle_dir)}
+    worlds, planner = TaskWorlds(), TampPlanner()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with out.open("w") as sink:
+        for record in tqdm(records, desc=f"rescore {task} {split}", unit="trial", disable=not progress):
+            if record["task"] != task or record["split"] != split:
+                sys.exit(f"--rescore: {source} holds a {record['task']}/{record['split']} trial, expected {task}/{split}")
+            episode = worlds.begin(task, int(record["seed"]))
+            plans = np.stack([planner.plan(task, episode.observation, tuple(o)).actions for o in record["orders"]])
+            result = scorer.score(episode.image, plans)
+            sink.write(json.dumps({**record, "model": model,
+                                   "scores": [round(float(v), 6) for v in result.probabilities],
+                                   "spread": [round(float(v), 6) for v in result.spread],
+                                   "rescored_from": str(source)}) + "\n")
     worlds.close()
 
 
@@ -209,13 +249,25 @@ def main() -> None:
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--analyse-only", action="store_true", help="no new trials: replay the records on disk")
     ap.add_argument("--out", type=Path, default=None, help="JSON (default docs/results/replan_threshold_<task>.json)")
+    ap.add_argument("--rescore", type=Path, default=None, metavar="DIR",
+                    help="score the candidates recorded in DIR/<task>-<split>.jsonl (every split found) with --bundle; "
+                         "no execution: the recorded outcomes are kept")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args()
     if args.trials < 1 or args.max_iterations < 1:
         ap.error("--trials and --max-iterations must be >= 1")
     bundle = args.bundle or ROOT / "firp" / "bundles" / args.task
     files = {s: args.records_dir / f"{args.task}-{s}.jsonl" for s in SPLIT_SEEDS}
-    if not args.analyse_only:
+    if args.rescore is not None:
+        sources = {s: args.rescore / f"{args.task}-{s}.jsonl" for s in SPLIT_SEEDS}
+        if not any(p.exists() for p in sources.values()):
+            ap.error(f"--rescore: no {args.task}-<split>.jsonl records in {args.rescore}")
+        if args.rescore.resolve() == args.records_dir.resolve():
+            ap.error("--rescore: give another --records-dir (the rescored records must not overwrite their source)")
+        for split, source in sources.items():
+            if source.exists():
+                rescore(args.task, split, source, bundle, files[split], not args.no_progress)
+    elif not args.analyse_only:
         collect(args.task, args.split, args.trials, bundle, files[args.split], args.max_iterations, args.resume,
                 not args.no_progress)
     out_json = args.out or ROOT / "docs" / "results" / f"replan_threshold_{args.task}.json"

@@ -50,3 +50,23 @@ def test_choose_threshold_prefers_the_best_rate_then_fewer_plans():
              {"threshold": 0.6, "success_rate": 0.7, "plans_scored": 2.0},
              {"threshold": 0.8, "success_rate": 0.7, "plans_scored": 2.0}]
     assert replan.choose_threshold(curve) == 0.6
+
+
+def test_rescoring_with_the_recording_bundle_reproduces_the_recorded_scores(tmp_path):
+    """``--rescore`` plans each recorded trial again instead of storing plans: with the bundle that
+    made the records it must give back their scores, and it keeps the recorded outcomes."""
+    import json
+
+    source = Path(__file__).resolve().parents[1] / "docs" / "results" / "replan_threshold" / "stacking-test.jsonl"
+    first = json.loads(source.read_text().splitlines()[0])
+    src = tmp_path / "stacking-test.jsonl"
+    src.write_text(json.dumps(first) + "\n")
+    out = tmp_path / "rescored" / "stacking-test.jsonl"
+    bundle = Path(__file__).resolve().parents[1] / "firp" / "bundles" / "stacking"
+    replan.rescore("stacking", "test", src, bundle, out, progress=False)
+    again = json.loads(out.read_text())
+    np.testing.assert_allclose(again["scores"], first["scores"], atol=2e-6)
+    assert again["success"] == first["success"] and again["orders"] == first["orders"]
+    assert again["rescored_from"] == str(src)
+    with pytest.raises(SystemExit, match="expected stacking/calibration"):
+        replan.rescore("stacking", "calibration", src, bundle, tmp_path / "x.jsonl", progress=False)
