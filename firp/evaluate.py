@@ -39,12 +39,15 @@ METHODS: dict[str, dict] = {
     "firp_atc": {"kind": "firp", "alpha": 0.0},
     "firp_tcr": {"kind": "firp"},
     "oracle": {"kind": "oracle"},
+    # an MLP on the plan's grasp-frame description alone (needs --plan-geometry): what the others add to it
+    "geometry_mlp": {"kind": "a_mlp", "baseline": {"plan_pooling": "none"}},
 }
+NEEDS_GEOMETRY = ("geometry_mlp",)
 DEFAULT_METHODS = ("a_mlp", "a_mlp_image", "gru", "firp", "firp_ttc", "firp_atc", "firp_tcr", "oracle")
 #: the FIRP variants whose test scores the per-repeat ensemble row averages
 FIRP_VARIANTS = ("firp", "firp_ttc", "firp_atc", "firp_tcr")
 ENSEMBLE = "firp_ensemble"
-BASELINES = ("a_mlp", "a_mlp_image", "gru")
+BASELINES = ("a_mlp", "a_mlp_image", "gru", "geometry_mlp")
 NOT_RUN = {"dvd": "needs the DVD authors' published weights, which cannot be downloaded here"}
 
 
@@ -58,7 +61,11 @@ def split_indices(labels: np.ndarray, repeat: int) -> tuple[np.ndarray, np.ndarr
 def evaluate_method(name: str, base: TrainConfig, data: SequenceData, repeat: int, run_dir: Path,
                     progress: bool) -> dict:
     train_idx, valid_idx, test_idx = split_indices(data.labels.numpy(), repeat)
-    cfg = replace(base, seed=repeat, **METHODS[name])
+    overrides = dict(METHODS[name])
+    baseline = overrides.pop("baseline", None)
+    cfg = replace(base, seed=repeat, **overrides)
+    if baseline:
+        cfg = replace(cfg, model=replace(cfg.model, baseline=replace(cfg.model.baseline, **baseline)))
     started = time.perf_counter()
     result = train_model(cfg, data.subset(train_idx), data.subset(valid_idx), checkpoint_dir=run_dir / "checkpoint",
                          progress=progress)
@@ -149,6 +156,9 @@ def main(argv: list[str] | None = None) -> int:
     add_model_flags(parser)
     args = parser.parse_args(argv)
     check_data_flag(parser, args)
+    if not args.plan_geometry and any(m in NEEDS_GEOMETRY for m in args.methods):
+        parser.error(f"--methods: {', '.join(m for m in args.methods if m in NEEDS_GEOMETRY)} reads the plan's "
+                     "grasp-frame description: add --plan-geometry")
     if args.only_repeats is not None and max(args.only_repeats) >= args.repeats:
         parser.error(f"--only-repeats: every index must be < --repeats ({args.repeats}), got {args.only_repeats}")
     out = args.out or Path("runs") / f"eval-{args.data.stem}"

@@ -44,11 +44,13 @@ MODEL_KINDS: tuple[str, ...] = ("firp", "a_mlp", "a_mlp_image", "gru", "oracle")
 
 
 def plan_vector(actions: Tensor, mask: Tensor | None, pooling: str, max_T: int) -> Tensor:
-    """``actions`` (B, T, A) -> (B, max_T * A) ("flatten", zero-padded) or (B, A) ("mean").
+    """``actions`` (B, T, A) -> (B, max_T * A) ("flatten", zero-padded), (B, A) ("mean") or (B, 0) ("none").
 
     Masked (padded) steps are zeroed / left out, so padding never changes the result.
     """
     B, T, A = actions.shape
+    if pooling == "none":
+        return actions.new_zeros(B, 0)
     if mask is not None:
         actions = actions * mask.unsqueeze(-1).to(actions.dtype)
     if pooling == "mean":
@@ -74,7 +76,9 @@ class _PlanMLP(nn.Module):
         super().__init__()
         self.cfg = cfg
         b = cfg.baseline
-        d_plan = cfg.action_dim * (b.max_T if b.plan_pooling == "flatten" else 1)
+        d_plan = {"flatten": cfg.action_dim * b.max_T, "mean": cfg.action_dim, "none": 0}[b.plan_pooling]
+        if b.plan_pooling == "none" and not cfg.geometry.enabled:
+            raise ValueError("baseline.plan_pooling='none' leaves the MLP no input: enable geometry")
         self.geometry = PlanGeometry(cfg.geometry.max_picks) if cfg.geometry.enabled else None
         d_geometry = self.geometry.dim if self.geometry is not None else 0
         self.mlp = _mlp3(d_plan + d_geometry + extra_dim, b.hidden)

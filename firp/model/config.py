@@ -147,17 +147,19 @@ class BaselineConfig:
 
     ``plan_pooling="flatten"`` feeds the whole plan, zero-padded to ``max_T`` steps, to the MLP (the
     order of steps is kept; plans longer than ``max_T`` are rejected); ``"mean"`` averages the steps
-    (any length, order lost).
+    (any length, order lost); ``"none"`` leaves the joint-space plan out, so an MLP reads only the
+    plan's grasp-frame description (needs :attr:`GeometryConfig.enabled`): a yardstick for what the
+    other models add to that description.
     """
 
     hidden: int = 256
-    plan_pooling: Literal["flatten", "mean"] = "flatten"
+    plan_pooling: Literal["flatten", "mean", "none"] = "flatten"
     max_T: int = DEFAULT_T
     gru_hidden: int = 200
 
     def __post_init__(self) -> None:
-        if self.plan_pooling not in ("flatten", "mean"):
-            raise ValueError(f"plan_pooling must be flatten|mean, got {self.plan_pooling!r}")
+        if self.plan_pooling not in ("flatten", "mean", "none"):
+            raise ValueError(f"plan_pooling must be flatten|mean|none, got {self.plan_pooling!r}")
         for name in ("hidden", "max_T", "gru_hidden"):
             _positive(name, getattr(self, name))
 

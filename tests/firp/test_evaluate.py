@@ -63,3 +63,19 @@ def test_missing_dataset_is_a_clear_cli_error(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--data", str(tmp_path / "nope.h5")])
     assert "--data:" in capsys.readouterr().err
+
+
+def test_plan_geometry_protocol_and_the_geometry_only_yardstick(tiny_dataset, tmp_path, capsys):
+    out = tmp_path / "eval"
+    common = ["--data", str(tiny_dataset), "--repeats", "1", "--epochs", "1", "--threads", "1", "--image-size", "32",
+              "--out", str(out), "--cache-dir", str(tmp_path / "cache"), "--no-progress"]
+    with pytest.raises(SystemExit):
+        main([*common, "--methods", "geometry_mlp"])
+    assert "geometry_mlp reads the plan's grasp-frame description: add --plan-geometry" in capsys.readouterr().err
+    assert main([*common, "--methods", "geometry_mlp", "firp_tcr", "--plan-geometry"]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert results["command"].endswith("--plan-geometry")
+    rows = {r["method"]: r for r in results["rows"]}
+    assert rows["geometry_mlp"]["config"]["model"]["baseline"]["plan_pooling"] == "none"
+    assert rows["firp_tcr"]["config"]["model"]["geometry"]["enabled"] is True
+    assert "best non-oracle baseline (geometry_mlp)" in (out / "results.md").read_text()

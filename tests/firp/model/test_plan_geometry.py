@@ -165,3 +165,19 @@ def test_geometry_is_off_by_default_and_old_configs_load():
     assert FIRPConfig.from_dict(d) == cfg
     with pytest.raises(ValueError, match="max_picks"):
         GeometryConfig(max_picks=0)
+
+
+def test_a_geometry_only_mlp_reads_the_description_and_nothing_else(planned):
+    from firp.model.config import BaselineConfig
+
+    with pytest.raises(ValueError, match="enable geometry"):
+        build_model("a_mlp", FIRPConfig(baseline=BaselineConfig(plan_pooling="none")))
+    cfg = FIRPConfig(baseline=BaselineConfig(plan_pooling="none"), geometry=GeometryConfig(enabled=True))
+    model = build_model("a_mlp", cfg)
+    assert model.mlp[0].in_features == geometry_dim()
+    a = _actions(planned["stacking"]).float()
+    model.geometry.fit(a)
+    changed = a.clone()
+    changed[:, :, -2:] = 0.01  # finger targets are not part of the description
+    with torch.no_grad():
+        assert torch.equal(model.score(None, a).logits, model.score(None, changed).logits)
