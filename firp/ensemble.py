@@ -72,6 +72,7 @@ from firp.model.config import FIRPConfig
 from firp.model.encoder import ImageEncoder
 from firp.model.firp import FIRP, chunk_actions, spread_chunk_weights
 from firp.model.ops import safe_unit
+from firp.model.plan_geometry import plan_geometry
 
 __all__ = ["AUTO_VMAP_MAX_N", "EnsembleResult", "EnsembleScorer", "Strategy"]
 
@@ -273,8 +274,8 @@ class _FusedFIRP:
         m0 = models[0]
         if not all(isinstance(m, FIRP) for m in models):
             raise TypeError("only FIRP members are fused")
-        if any(m.geometry is not None for m in models):
-            raise TypeError("members with the plan-geometry head input are not fused (they run vmapped)")
+        if len({m.geometry is None for m in models}) != 1:
+            raise TypeError("fused members must all read the plan's grasp-frame description, or none")
         rssm_cfg = m0.rssm.cfg
         self.members = list(models)
         self.chunk = m0.cfg.action_chunk
@@ -318,8 +319,17 @@ class _FusedFIRP:
             self.w_q1, self.b_q1 = _stack_t([l.weight for l in q1]), _stack_b([l.bias for l in q1])
             self.w_q2, self.b_q2 = _stack_t([l.weight for l in q2]), _stack_b([l.bias for l in q2])
             self.prototypes = torch.stack([safe_unit(m.head.prototypes) for m in models])  # (M, P, Q)
-            self.w_out = _stack_t([m.head.out.weight for m in models])  # (M, Q, 1)
+            self.w_out = _stack_t([m.head.out.weight for m in models])  # (M, Q [+ Hc], 1)
             self.b_out = _stack_b([m.head.out.bias for m in models])
+            # the head's context: the plan's grasp-frame description, standardised per member, through an MLP
+            self.max_picks = m0.geometry.max_picks if m0.geometry is not None else None
+            if self.max_picks is not None:
+                self.g_mean = torch.stack([m.geometry.mean for m in models])[:, None, :]  # (M, 1, G)
+                self.g_std = torch.stack([m.geometry.std for m in models])[:, None, :]
+                c1 = [_linear_parts(m.head.context)[0] for m in models]
+                c2 = [_linear_parts(m.head.context)[1] for m in models]
+                self.w_c1, self.b_c1 = _stack_t([l.weight for l in c1]), _stack_b([l.bias for l in c1])
+                self.w_c2, self.b_c2 = _stack_t([l.weight for l in c2]), _stack_b([l.bias for l in c2])
         self._lock = threading.Lock()
         self._scenes: list[tuple[Tensor, Tensor, Tensor]] = []  # (features, e_1, ge), most recent last
 
@@ -371,6 +381,10 @@ class _FusedFIRP:
         cos = torch.einsum("mpq,mntq->mnpt", self.prototypes, safe_unit(q))  # (M, N, P, Tc)
         w = torch.softmax(cos / self.temperature, dim=-1).mean(dim=2)  # (M, N, Tc)
         pooled = torch.einsum("mnt,mntq->mnq", w, q)
+        if self.max_picks is not None:  # the description is computed once for every member
+            z = (plan_geometry(actions, None, self.max_picks).unsqueeze(0) - self.g_mean) / self.g_std  # (M, N, G)
+            c = torch.baddbmm(self.b_c2, torch.relu(torch.baddbmm(self.b_c1, z, self.w_c1)), self.w_c2)
+            pooled = torch.cat([pooled, torch.relu(c)], dim=-1)  # (M, N, Q + Hc)
         logits = torch.baddbmm(self.b_out, pooled, self.w_out).squeeze(-1)  # (M, N)
         return logits, spread_chunk_weights(w.reshape(M * N, Tc), T, k).view(M, N, T)
 
@@ -423,7 +437,7 @@ class EnsembleScorer:
                 else one_by_one
             if strategy == "vmap":
                 vmapped += batched
-            elif kind in _FUSED_KINDS and not bundle.configs[idx[0]].geometry.enabled:  # fused: the paper's head only
+            elif kind in _FUSED_KINDS:
                 fused.append((idx, _FusedFIRP(members)))  # type: ignore[arg-type]
             else:
                 rest_vmapped += batched

@@ -333,9 +333,10 @@ def test_the_fused_scene_cache_matches_by_value(tmp_path):
 
 
 @pytest.mark.parametrize("strategy", ["auto", "fused", "vmap"])
-def test_plan_geometry_members_run_vmapped_not_fused_and_score_like_the_loop(tmp_path, strategy):
+@pytest.mark.parametrize("n", [1, 6, AUTO_VMAP_MAX_N + 1])
+def test_plan_geometry_members_score_like_the_loop_on_every_path(tmp_path, strategy, n):
     """Members reading the plan's grasp-frame description keep their fitted statistics through the
-    bundle and score the same on every path (the fused rollout knows only the paper's head)."""
+    bundle and score the same on every path, the fused one included (it adds the head's context)."""
     cfg = dataclasses.replace(TINY, geometry=dataclasses.replace(TINY.geometry, enabled=True))
     plans = valid_plans(6, 16, seed=3)
     members = []
@@ -346,10 +347,12 @@ def test_plan_geometry_members_run_vmapped_not_fused_and_score_like_the_loop(tmp
     bundle = load_bundle(export_tiny(tmp_path / "b", members))
     assert torch.equal(bundle.models[0].geometry.std, members[0].model.geometry.std)
     scorer = EnsembleScorer(bundle, strategy=strategy)
-    assert all(type(runner).__name__ != "_FusedFIRP" for _, runner in scorer._small + scorer._large)
-    image = random_image()
+    runners = {type(runner).__name__ for _, runner in scorer._small + scorer._large}
+    assert ("_FusedFIRP" in runners) == (strategy != "vmap")
+    image, plans = random_image(), valid_plans(n, 16, seed=3 + n)
     got, want = scorer.score(image, plans), EnsembleScorer(bundle, strategy="loop").score(image, plans)
     np.testing.assert_allclose(got.member_probabilities, want.member_probabilities, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(got.weights, want.weights, atol=1e-5, rtol=0)
     with torch.no_grad():
         enc = ImageEncoder(TINY.encoder, backbone=bundle.backbone)
         feats = enc.backbone_features(image[None]).expand(len(plans), -1)
