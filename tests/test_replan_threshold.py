@@ -57,7 +57,8 @@ def test_rescoring_with_the_recording_bundle_reproduces_the_recorded_scores(tmp_
     made the records it must give back their scores, and it keeps the recorded outcomes."""
     import json
 
-    source = Path(__file__).resolve().parents[1] / "docs" / "results" / "replan_threshold" / "stacking-test.jsonl"
+    # the records the shipped bundle made (rescored from the executed ones; the scores must come back)
+    source = Path(__file__).resolve().parents[1] / "docs" / "results" / "replan_threshold_geometry" / "stacking-test.jsonl"
     first = json.loads(source.read_text().splitlines()[0])
     src = tmp_path / "stacking-test.jsonl"
     src.write_text(json.dumps(first) + "\n")
