@@ -72,7 +72,7 @@ from firp.model.config import FIRPConfig
 from firp.model.encoder import ImageEncoder
 from firp.model.firp import FIRP, chunk_actions, spread_chunk_weights
 from firp.model.ops import safe_unit
-from firp.model.plan_geometry import plan_geometry
+from firp.model.plan_geometry import plan_geometry, standardise
 
 __all__ = ["AUTO_VMAP_MAX_N", "EnsembleResult", "EnsembleScorer", "Strategy"]
 
@@ -382,7 +382,7 @@ class _FusedFIRP:
         w = torch.softmax(cos / self.temperature, dim=-1).mean(dim=2)  # (M, N, Tc)
         pooled = torch.einsum("mnt,mntq->mnq", w, q)
         if self.max_picks is not None:  # the description is computed once for every member
-            z = (plan_geometry(actions, None, self.max_picks).unsqueeze(0) - self.g_mean) / self.g_std  # (M, N, G)
+            z = standardise(plan_geometry(actions, None, self.max_picks).unsqueeze(0), self.g_mean, self.g_std)  # (M, N, G)
             c = torch.baddbmm(self.b_c2, torch.relu(torch.baddbmm(self.b_c1, z, self.w_c1)), self.w_c2)
             pooled = torch.cat([pooled, torch.relu(c)], dim=-1)  # (M, N, Q + Hc)
         logits = torch.baddbmm(self.b_out, pooled, self.w_out).squeeze(-1)  # (M, N)

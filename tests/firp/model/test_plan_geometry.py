@@ -133,7 +133,7 @@ def test_standardised_geometry_and_models_reading_it(planned):
     enc.fit(a)
     z = enc(a)
     assert z.shape == (6, geometry_dim()) and torch.isfinite(z).all()
-    varying = enc.std > enc.min_std
+    varying = plan_geometry(a.double()).std(dim=0) > 1e-6
     assert torch.allclose(z[:, varying].mean(0), torch.zeros(int(varying.sum())), atol=1e-4)
     cfg = FIRPConfig(encoder=EncoderConfig(feature_dim=8, projection_hidden=0),
                      rssm=RSSMConfig(deter_dim=8, stoch_dim=4, hidden=8), geometry=GeometryConfig(enabled=True),
@@ -181,3 +181,17 @@ def test_a_geometry_only_mlp_reads_the_description_and_nothing_else(planned):
     changed[:, :, -2:] = 0.01  # finger targets are not part of the description
     with torch.no_grad():
         assert torch.equal(model.score(None, a).logits, model.score(None, changed).logits)
+
+
+def test_columns_constant_in_training_stay_unscaled_and_unseen_plans_stay_bounded(planned):
+    """Fitted on stacking (two picks), scoring a replacement plan (three picks): the third pick's columns
+    were constant (zero) in training -- they are not divided by a tiny std, and nothing exceeds the clip."""
+    from firp.model.plan_geometry import STANDARD_CLIP
+
+    enc = PlanGeometry()
+    enc.fit(_actions(planned["stacking"]).float())
+    per_pick = geometry_dim() // 3
+    assert torch.all(enc.std[2 * per_pick:] == 1.0) and torch.all(enc.mean[2 * per_pick:] == 0.0)
+    z = enc(_actions(planned["replacement"]).float())
+    assert torch.all(z[:, 2 * per_pick] == 1.0)  # the third pick's presence flag: 1 - 0, unscaled
+    assert z.abs().max() <= STANDARD_CLIP
