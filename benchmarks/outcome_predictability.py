@@ -174,8 +174,9 @@ def episode_plan(attrs: dict) -> np.ndarray:
     from sim_worker.collect import plan_episode
     from sim_worker.perception import PoseErrorConfig
 
-    planner = _worker.setdefault("planner", TampPlanner(PlannerConfig()))
-    planned = plan_episode(planner, attrs["task"], int(attrs["seed"]), tuple(attrs["block_order"]), PoseErrorConfig())
+    if "planner" not in _worker:  # one planner (and its IK model) for every re-made plan
+        _worker["planner"] = TampPlanner(PlannerConfig())
+    planned = plan_episode(_worker["planner"], attrs["task"], int(attrs["seed"]), tuple(attrs["block_order"]), PoseErrorConfig())
     return np.asarray(planned.plan.actions)
 
 
