@@ -73,7 +73,7 @@ def model_config_from(args: argparse.Namespace, image_size: int):
     return FIRPConfig(encoder=EncoderConfig(image_size=image_size), action_chunk=args.action_chunk,
                       rssm=RSSMConfig(deter_dim=args.deter_dim, hidden=args.hidden),
                       head=HeadConfig(temperature=args.head_temperature),
-                      geometry=GeometryConfig(enabled=bool(getattr(args, "plan_geometry", False))))
+                      geometry=GeometryConfig(enabled=args.plan_geometry))
 
 
 def add_training_flags(parser: argparse.ArgumentParser) -> None:

@@ -18,7 +18,7 @@ from firp.model.encoder import FeatureProjection, ImageEncoder
 from firp.model.head import SuccessHead
 from firp.model.normalize import ActionNormalizer
 from firp.model.ops import plan_categories
-from firp.model.plan_geometry import PlanGeometry
+from firp.model.plan_geometry import build_plan_geometry, plan_context
 from firp.model.rssm import RSSM
 
 __all__ = ["FIRP", "Score", "chunk_actions", "chunk_frame_index", "first_step", "spread_chunk_weights"]
@@ -80,14 +80,9 @@ class FIRP(nn.Module):
         self.projection = FeatureProjection(cfg.encoder)
         self.rssm = RSSM(cfg.rssm, E, cfg.action_dim * cfg.action_chunk)
         # the plan's grasp-frame description beside the pooled sequence (off: the paper's head)
-        self.geometry = PlanGeometry(cfg.geometry.max_picks) if cfg.geometry.enabled else None
-        self.head = SuccessHead(cfg.head, E, context_dim=self.geometry.dim if self.geometry is not None else 0,
-                                context_hidden=cfg.geometry.hidden)
+        self.geometry = build_plan_geometry(cfg.geometry)
+        self.head = SuccessHead.with_geometry(cfg, E, self.geometry)
         self.action_norm = ActionNormalizer(cfg.action_dim)
-
-    def plan_context(self, actions: Tensor, mask: Tensor | None = None) -> Tensor | None:
-        """The head's context: the standardised grasp-frame description of the raw plans (B, G), or None."""
-        return self.geometry(actions, mask) if self.geometry is not None else None
 
     def image_encoder(self) -> ImageEncoder:
         """An :class:`ImageEncoder` (builds/loads the backbone) sharing this model's projection."""
@@ -123,7 +118,7 @@ class FIRP(nn.Module):
         """
         k = self.cfg.action_chunk
         categories = plan_categories(actions)  # (B, T)
-        context = self.plan_context(actions, mask)  # (B, G) or None, from the raw plan
+        context = plan_context(self.geometry, actions, mask)  # (B, G) or None, from the raw plan
         if k > 1:  # one transition per chunk of k plan steps; observe each chunk's frame
             index = torch.tensor(chunk_frame_index(actions.shape[1], k), device=features.device)
             features, categories = features[:, index], categories[:, index]  # (B, Tc, Db), (B, Tc)
@@ -171,7 +166,7 @@ class FIRP(nn.Module):
         the means, so one plan always gets one score.
         """
         k, T = self.cfg.action_chunk, actions.shape[1]
-        context = self.plan_context(actions, mask)  # (B, G) or None
+        context = plan_context(self.geometry, actions, mask)  # (B, G) or None
         if k > 1 and mask is not None:
             mask = mask[:, torch.tensor(chunk_frame_index(T, k), device=mask.device)]
         e1 = self.projection(first_step(first_features))  # (B, E)

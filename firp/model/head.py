@@ -26,8 +26,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from firp.model.config import HeadConfig
+from firp.model.config import FIRPConfig, HeadConfig
 from firp.model.ops import mlp2, safe_unit
+from firp.model.plan_geometry import PlanGeometry
 
 __all__ = ["SuccessHead"]
 
@@ -43,6 +44,12 @@ class SuccessHead(nn.Module):
         # optional per-sequence context (the plan's grasp-frame description), read beside the pooled q
         self.context = mlp2(context_dim, context_hidden, context_hidden) if context_dim else None
         self.out = nn.Linear(cfg.q_dim + (context_hidden if context_dim else 0), 1)
+
+    @classmethod
+    def with_geometry(cls, cfg: FIRPConfig, feature_dim: int, geometry: PlanGeometry | None) -> SuccessHead:
+        """The head of a model that owns ``geometry`` (or None): its context is the plan's description."""
+        return cls(cfg.head, feature_dim, context_dim=geometry.dim if geometry is not None else 0,
+                   context_hidden=cfg.geometry.hidden)
 
     def attention(self, q: Tensor, mask: Tensor | None = None) -> Tensor:
         """Eq. (5): ``q`` (B, T, Q) -> ``w`` (B, T), rows sum to 1 over the valid steps."""

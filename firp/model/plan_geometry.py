@@ -38,14 +38,17 @@ import torch
 from torch import Tensor, nn
 
 from firp.contract import CATEGORY_INDEX, N_CATEGORIES
+from firp.model.config import GeometryConfig
 
 __all__ = [
     "DEFAULT_MAX_PICKS",
     "PANDA_DH",
     "PlanGeometry",
+    "build_plan_geometry",
     "geometry_dim",
     "panda_tcp_pose",
     "pick_events",
+    "plan_context",
     "plan_geometry",
     "standardise",
     "tcp_yaw",
@@ -261,3 +264,13 @@ class PlanGeometry(nn.Module):
     def forward(self, actions: Tensor, mask: Tensor | None = None) -> Tensor:
         """Raw plans ``(B, T, A)`` -> standardised description ``(B, G)``."""
         return standardise(plan_geometry(actions, mask, self.max_picks), self.mean, self.std)
+
+
+def build_plan_geometry(cfg: GeometryConfig) -> PlanGeometry | None:
+    """The description module a model owns when ``cfg.enabled``, else None (the paper's models)."""
+    return PlanGeometry(cfg.max_picks) if cfg.enabled else None
+
+
+def plan_context(geometry: PlanGeometry | None, actions: Tensor, mask: Tensor | None = None) -> Tensor | None:
+    """A success head's context: the standardised description of the raw plans (B, G), or None without one."""
+    return geometry(actions, mask) if geometry is not None else None
