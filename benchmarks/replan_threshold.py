@@ -48,50 +48,9 @@ SPLIT_SEEDS = {"calibration": 200_000, "test": 100_000}
 GRID = np.round(np.arange(0.02, 0.981, 0.02), 2)
 
 
-def collect(task: str, split: str, trials: int, bundle_dir: Path, out: Path, max_iterations: int,
-            resume: bool, progress: bool) -> None:
-    """Plan, score and execute every candidate of each pending trial; one JSON line per trial."""
-    import torch
-
-    from firp.bundle import load_bundle
-    from firp.ensemble import EnsembleScorer
-    from planner_client.tamp import TampPlanner, block_orders
-    from sim_worker.worlds import TaskWorlds
-
-    torch.set_num_threads(1)
-    if out.exists() and not resume:
-        sys.exit(f"--out: {out} exists; pass --resume to continue it or choose another file")
-    records = read_records(out)  # a torn last line (killed mid-write) is dropped: that trial runs again
-    done = {r["trial"] for r in records}
-    if out.exists():
-        out.write_text("".join(json.dumps(r) + "\n" for r in records))
-    scorer = EnsembleScorer(load_bundle(bundle_dir))
-    model = {"name": scorer.bundle.manifest.get("name"), "version": scorer.bundle.manifest.get("version"),
-             "threshold": scorer.threshold}
-    worlds, planner = TaskWorlds(), TampPlanner()
-    orders = block_orders()[:max_iterations]
-    out.parent.mkdir(parents=True, exist_ok=True)
-    pending = [t for t in range(trials) if t not in done]
-    with out.open("a") as sink:
-        for trial in tqdm(pending, desc=f"{task} {split}", unit="trial", disable=not progress):
-            started = time.perf_counter()
-            seed = SPLIT_SEEDS[split] + trial
-            episode = worlds.begin(task, seed)
-            plans = np.stack([planner.plan(task, episode.observation, order).actions for order in orders])
-            result = scorer.score(episode.image, plans)
-            successes = [bool(worlds.execute(task, episode.true_blocks, plan).success) for plan in plans]
-            record = {"trial": trial, "seed": seed, "task": task, "split": split, "model": model,
-                      "orders": [list(o) for o in orders],
-                      "scores": [round(float(s), 6) for s in result.probabilities],
-                      "spread": [round(float(s), 6) for s in result.spread],
-                      "success": successes, "seconds": round(time.perf_counter() - started, 3)}
-            sink.write(json.dumps(record) + "\n")
-            sink.flush()
-    worlds.close()
-
-
-def rescore(task: str, split: str, source: Path, bundle_dir: Path, out: Path, progress: bool) -> None:
-    """Score the candidates recorded in ``source`` with another bundle; outcomes are copied, not re-run."""
+def _scoring_setup(bundle_dir: Path) -> tuple:
+    """The in-process ensemble scorer (the one the service runs), the model as records name it, the
+    task worlds and the planner."""
     import torch
 
     from firp.bundle import load_bundle
@@ -100,25 +59,64 @@ def rescore(task: str, split: str, source: Path, bundle_dir: Path, out: Path, pr
     from sim_worker.worlds import TaskWorlds
 
     torch.set_num_threads(1)
+    scorer = EnsembleScorer(load_bundle(bundle_dir))
+    model = {"name": scorer.bundle.manifest.get("name"), "version": scorer.bundle.manifest.get("version"),
+             "threshold": scorer.threshold}
+    return scorer, model, TaskWorlds(), TampPlanner()
+
+
+def _scored_candidates(worlds, planner, scorer, task: str, seed: int, orders) -> tuple:
+    """Set up scene ``seed``, plan every order, score the plans: ``(episode, plans (K, T, 16), score fields)``."""
+    episode = worlds.begin(task, seed)
+    plans = np.stack([planner.plan(task, episode.observation, tuple(order)).actions for order in orders])
+    result = scorer.score(episode.image, plans)
+    return episode, plans, {"scores": [round(float(v), 6) for v in result.probabilities],
+                            "spread": [round(float(v), 6) for v in result.spread]}
+
+
+def collect(task: str, split: str, trials: int, bundle_dir: Path, out: Path, max_iterations: int,
+            resume: bool, progress: bool) -> None:
+    """Plan, score and execute every candidate of each pending trial; one JSON line per trial."""
+    from planner_client.tamp import block_orders
+
+    if out.exists() and not resume:
+        sys.exit(f"--out: {out} exists; pass --resume to continue it or choose another file")
+    records = read_records(out)  # a torn last line (killed mid-write) is dropped: that trial runs again
+    done = {r["trial"] for r in records}
+    if out.exists():
+        out.write_text("".join(json.dumps(r) + "\n" for r in records))
+    scorer, model, worlds, planner = _scoring_setup(bundle_dir)
+    orders = block_orders()[:max_iterations]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    pending = [t for t in range(trials) if t not in done]
+    with out.open("a") as sink:
+        for trial in tqdm(pending, desc=f"{task} {split}", unit="trial", disable=not progress):
+            started = time.perf_counter()
+            seed = SPLIT_SEEDS[split] + trial
+            episode, plans, scored = _scored_candidates(worlds, planner, scorer, task, seed, orders)
+            successes = [bool(worlds.execute(task, episode.true_blocks, plan).success) for plan in plans]
+            record = {"trial": trial, "seed": seed, "task": task, "split": split, "model": model,
+                      "orders": [list(o) for o in orders], **scored,
+                      "success": successes, "seconds": round(time.perf_counter() - started, 3)}
+            sink.write(json.dumps(record) + "\n")
+            sink.flush()
+    worlds.close()
+
+
+def rescore(task: str, split: str, source: Path, bundle_dir: Path, out: Path, progress: bool) -> None:
+    """Score the candidates recorded in ``source`` with another bundle; outcomes are copied, not re-run."""
     records = read_records(source)
     if not records:
         sys.exit(f"--rescore: {source} holds no trials")
-    scorer = EnsembleScorer(load_bundle(bundle_dir))
-    model = {"name": scorer.bundle.manifest.get("name"), "version": scorer.bundle.manifest.get("version"),
-             "threshold": scorer.threshold, "bundle": str(bundle_dir)}
-    worlds, planner = TaskWorlds(), TampPlanner()
+    scorer, model, worlds, planner = _scoring_setup(bundle_dir)
+    model = {**model, "bundle": str(bundle_dir)}
     out.parent.mkdir(parents=True, exist_ok=True)
     with out.open("w") as sink:
         for record in tqdm(records, desc=f"rescore {task} {split}", unit="trial", disable=not progress):
             if record["task"] != task or record["split"] != split:
                 sys.exit(f"--rescore: {source} holds a {record['task']}/{record['split']} trial, expected {task}/{split}")
-            episode = worlds.begin(task, int(record["seed"]))
-            plans = np.stack([planner.plan(task, episode.observation, tuple(o)).actions for o in record["orders"]])
-            result = scorer.score(episode.image, plans)
-            sink.write(json.dumps({**record, "model": model,
-                                   "scores": [round(float(v), 6) for v in result.probabilities],
-                                   "spread": [round(float(v), 6) for v in result.spread],
-                                   "rescored_from": str(source)}) + "\n")
+            _, _, scored = _scored_candidates(worlds, planner, scorer, task, int(record["seed"]), record["orders"])
+            sink.write(json.dumps({**record, "model": model, **scored, "rescored_from": str(source)}) + "\n")
     worlds.close()
 
 
