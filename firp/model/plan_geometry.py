@@ -39,6 +39,7 @@ from torch import Tensor, nn
 
 from firp.contract import CATEGORY_INDEX, N_CATEGORIES
 from firp.model.config import GeometryConfig
+from firp.model.ops import plan_categories
 
 __all__ = [
     "DEFAULT_MAX_PICKS",
@@ -147,7 +148,7 @@ def pick_events(actions: Tensor, mask: Tensor | None = None, max_picks: int = DE
     """
     if actions.ndim != 3 or actions.shape[-1] < N_CATEGORIES + 7:
         raise ValueError(f"actions must be (B, T, >= {N_CATEGORIES + 7}), got shape {tuple(actions.shape)}")
-    categories = actions[..., :N_CATEGORIES].argmax(dim=-1)  # (B, T)
+    categories = plan_categories(actions)  # (B, T)
     grasp_starts = _run_starts(categories == CATEGORY_INDEX["grasp"], mask)
     release_starts = _run_starts(categories == CATEGORY_INDEX["release"], mask)
     grasp_idx, has_grasp = _gather_first(grasp_starts, max_picks)  # (B, P)
