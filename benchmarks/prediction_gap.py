@@ -25,33 +25,20 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import sys
 from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors.torch import load_file
 
+from firp.ablation import find_checkpoints, load_model
 from firp.data import SequenceData, load_sequences
-from firp.evaluate import BASELINES, FIRP_VARIANTS, split_indices
-from firp.metrics import balanced_accuracy, choose_threshold
-from firp.model.baselines import build_model
-from firp.train import TrainConfig, _with_loss_weights, predict
+from firp.evaluate import BASELINES, FIRP_VARIANTS, TARGET_MARGIN, best_baseline, ensemble_rows, held_out_metrics, \
+    mean_std, split_indices
+from firp.train import predict
 
 SOURCES = ("predicted", "real", "first_only")
-TARGET_MARGIN = 0.05  # the issue's bar: the FIRP ensemble >= best non-oracle baseline + 0.05
-
-
-def load_trained(checkpoint: Path) -> torch.nn.Module:
-    """The best-epoch model of a finished ``firp.evaluate`` run (safetensors + its JSON config)."""
-    state = json.loads((checkpoint / "state.json").read_text())
-    if not state.get("finished"):
-        raise SystemExit(f"{checkpoint}: training did not finish; run firp.evaluate to the end first")
-    cfg = TrainConfig.from_dict(state["config"])
-    model = build_model(cfg.kind, _with_loss_weights(cfg))
-    model.load_state_dict(load_file(checkpoint / "best.safetensors"))  # normaliser/geometry stats are buffers
-    return model.eval()
+REPORTED = ("test_balanced_accuracy", "test_balanced_accuracy_valid_threshold")
 
 
 @torch.inference_mode()
@@ -69,17 +56,9 @@ def head_scores(model: torch.nn.Module, data: SequenceData, source: str, batch_s
     return torch.cat(out).numpy()
 
 
-def scored(y_valid: np.ndarray, p_valid: np.ndarray, y_test: np.ndarray, p_test: np.ndarray) -> dict:
-    threshold, _ = choose_threshold(y_valid, p_valid)
-    return {"test_balanced_accuracy": balanced_accuracy(y_test, p_test >= 0.5),
-            "test_balanced_accuracy_valid_threshold": balanced_accuracy(y_test, p_test >= threshold)}
-
-
-def mean_std(values: list[float]) -> str:
-    """Mean ± sample std, as firp.evaluate's table writes them."""
-    if not values:
-        return "—"
-    return f"{statistics.mean(values):.3f} ± {statistics.stdev(values) if len(values) > 1 else 0.0:.3f}"
+def reported(metrics: dict) -> dict:
+    """The balanced accuracies this benchmark reports, of a :func:`held_out_metrics` / ensemble row."""
+    return {key: metrics[key] for key in REPORTED}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -91,55 +70,53 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="JSON to write")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    rows = [json.loads(p.read_text()) for p in sorted(args.eval_dir.glob("r*-*.json"))]
-    firp_rows = [r for r in rows if r["method"] in FIRP_VARIANTS]
-    if not firp_rows:
+    checkpoints, skipped = find_checkpoints(args.eval_dir, FIRP_VARIANTS) if args.eval_dir.is_dir() else ([], [])
+    for message in skipped:
+        print(message, file=sys.stderr)
+    if not checkpoints:
         print(f"--eval-dir: no finished FIRP runs ({', '.join(FIRP_VARIANTS)}) in {args.eval_dir}", file=sys.stderr)
         return 2
-    encoder = TrainConfig.from_dict(firp_rows[0]["config"]).model.encoder
-    data = load_sequences(args.data, encoder, args.cache_dir, progress=False)
+    data = load_sequences(args.data, checkpoints[0].config.model.encoder, args.cache_dir, progress=False)
     labels = data.labels.numpy() > 0.5
 
-    per_run, members = [], {}  # members[repeat][source] = [(p_valid, p_test), ...]
-    for row in firp_rows:
-        repeat, method = row["repeat"], row["method"]
-        _, valid_idx, test_idx = split_indices(data.labels.numpy(), repeat)
-        if test_idx.tolist() != row["test_index"]:
-            raise SystemExit(f"{args.eval_dir}: repeat {repeat}'s test split differs from --data's: another dataset?")
-        model = load_trained(args.eval_dir / f"r{repeat}-{method}" / "checkpoint")
+    per_run = []
+    scored_rows: dict[str, list[dict]] = {source: [] for source in SOURCES}  # per source, rows as ensemble_rows reads
+    for ckpt in checkpoints:
+        _, valid_idx, test_idx = split_indices(data.labels.numpy(), ckpt.repeat)
+        if test_idx.tolist() != ckpt.row["test_index"]:
+            raise SystemExit(f"{args.eval_dir}: repeat {ckpt.repeat}'s test split differs from --data's: another dataset?")
+        model = load_model(ckpt)
         valid, test = data.subset(valid_idx), data.subset(test_idx)
-        entry = {"repeat": repeat, "method": method}
+        entry = {"repeat": ckpt.repeat, "method": ckpt.method}
         for source in SOURCES:
             p_valid, p_test = head_scores(model, valid, source), head_scores(model, test, source)
-            entry[source] = scored(labels[valid_idx], p_valid, labels[test_idx], p_test)
-            members.setdefault(repeat, {}).setdefault(source, []).append((p_valid, p_test))
+            entry[source] = reported(held_out_metrics(labels[valid_idx], p_valid, labels[test_idx], p_test))
+            scored_rows[source].append({
+                "method": ckpt.method, "repeat": ckpt.repeat, "valid_index": valid_idx.tolist(),
+                "test_index": test_idx.tolist(), "valid_scores": p_valid, "test_scores": p_test, "train_seconds": 0.0})
             if source == "predicted":  # the recomputed inference path must be the evaluation's
-                entry["max_abs_diff_to_recorded_scores"] = float(np.max(np.abs(p_test - np.array(row["test_scores"]))))
+                entry["max_abs_diff_to_recorded_scores"] = float(np.max(np.abs(p_test - np.array(ckpt.row["test_scores"]))))
         per_run.append(entry)
-        print(f"repeat {repeat} {method}: " + ", ".join(
+        print(f"repeat {ckpt.repeat} {ckpt.method}: " + ", ".join(
             f"{s} {entry[s]['test_balanced_accuracy']:.3f}" for s in SOURCES), flush=True)
 
-    ensemble = []
-    for repeat, by_source in sorted(members.items()):
-        _, valid_idx, test_idx = split_indices(data.labels.numpy(), repeat)
-        entry = {"repeat": repeat, "members": len(by_source["predicted"])}
-        for source, pairs in by_source.items():
-            p_valid = np.mean([p for p, _ in pairs], axis=0)
-            p_test = np.mean([p for _, p in pairs], axis=0)
-            entry[source] = scored(labels[valid_idx], p_valid, labels[test_idx], p_test)
-        ensemble.append(entry)
+    # one variant alone still gets its row: the table's "ensemble" column is then that model
+    by_source = {source: ensemble_rows(rows, data.labels.numpy(), min_members=1) for source, rows in scored_rows.items()}
+    ensemble = [{"repeat": row["repeat"], "members": len(row["members"]),
+                 **{source: reported(by_source[source][i]) for source in SOURCES}}
+                for i, row in enumerate(by_source["predicted"])]
 
-    repeats = sorted(members)
-    baseline_rows = [r for r in rows if r["method"] in BASELINES and r["repeat"] in repeats]
-    baselines = {m: [r["test_balanced_accuracy"] for r in baseline_rows if r["method"] == m]
-                 for m in BASELINES if any(r["method"] == m for r in baseline_rows)}
-    oracle = [r["test_balanced_accuracy"] for r in rows if r["method"] == "oracle" and r["repeat"] in repeats]
-    best_name = max(baselines, key=lambda m: np.mean(baselines[m])) if baselines else None
-    bar = float(np.mean(baselines[best_name])) + TARGET_MARGIN if best_name else None
+    repeats = sorted({c.repeat for c in checkpoints})
+    rows = [json.loads(p.read_text()) for p in sorted(args.eval_dir.glob("r*-*.json"))]
+    rows = [r for r in rows if r["repeat"] in repeats]
+    baselines = {m: [r["test_balanced_accuracy"] for r in rows if r["method"] == m]
+                 for m in BASELINES if any(r["method"] == m for r in rows)}
+    oracle = [r["test_balanced_accuracy"] for r in rows if r["method"] == "oracle"]
+    best = best_baseline(rows)
+    bar = best[1] + TARGET_MARGIN if best else None
 
-    lines = [f"| FIRP head on | {' | '.join(sorted({e['method'] for e in per_run}))} | ensemble |", "|---|"]
     methods = sorted({e["method"] for e in per_run})
-    lines[1] += "---|" * (len(methods) + 1)
+    lines = [f"| FIRP head on | {' | '.join(methods)} | ensemble |", "|---|" + "---|" * (len(methods) + 1)]
     for source in SOURCES:
         cells = [mean_std([e[source]["test_balanced_accuracy"] for e in per_run if e["method"] == m]) for m in methods]
         cells.append(mean_std([e[source]["test_balanced_accuracy"] for e in ensemble]))
@@ -151,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\ntest balanced accuracy (threshold 0.5) over repeats {repeats}\n{table}\n\nsame run: {context}")
     if bar is not None:
         real = float(np.mean([e["real"]["test_balanced_accuracy"] for e in ensemble]))
-        print(f"target (best baseline {best_name} + {TARGET_MARGIN}) = {bar:.3f}; "
+        print(f"target (best baseline {best[0]} + {TARGET_MARGIN}) = {bar:.3f}; "
               f"FIRP ensemble with a perfect world model (real features) = {real:.3f}")
     diffs = [e["max_abs_diff_to_recorded_scores"] for e in per_run]
     print(f"recomputed inference scores vs recorded: max |diff| {max(diffs):.2e}")
@@ -162,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
         "dataset_hash": data.dataset_hash, "repeats": repeats, "sources": SOURCES,
         "per_run": per_run, "ensemble": ensemble,
         "baselines_test_balanced_accuracy": baselines, "oracle_test_balanced_accuracy": oracle,
-        "best_baseline": best_name, "target": bar, "table": table,
+        "best_baseline": best[0] if best else None, "target": bar, "table": table,
     }, indent=1))
     print(f"wrote {args.out}")
     return 0

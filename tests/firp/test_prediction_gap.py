@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from firp.ablation import find_checkpoints, load_model
 from firp.data import load_sequences
 from firp.evaluate import main as evaluate
 
@@ -49,7 +50,8 @@ def test_recomputes_the_recorded_scores_and_reports_every_source(tiny_dataset, e
 
 
 def test_first_only_ignores_the_later_frames_and_real_reads_them(tiny_dataset, evaluated):
-    model = gap.load_trained(evaluated / "eval" / "r0-firp" / "checkpoint")
+    (ckpt,) = find_checkpoints(evaluated / "eval", ("firp",))[0]
+    model = load_model(ckpt)
     data = load_sequences(tiny_dataset, model.cfg.encoder, evaluated / "cache", progress=False)
     changed = type(data)(data.features.clone(), data.actions, data.labels, data.dataset_hash, data.demo_names)
     changed.features[:, 1:] = torch.randn_like(changed.features[:, 1:]) * 5
