@@ -36,7 +36,7 @@ def main() -> None:
     cfg = replace(ref, epochs=args.epochs, threads=args.threads,
                   model=replace(ref.model, loss=replace(ref.model.loss, open_loop_sample=False)))
     data = load_sequences(args.data, cfg.model.encoder, "data/cache", progress=False)
-    train_idx, valid_idx = tuning_split(data)
+    train_idx, valid_idx = tuning_split(data.labels.numpy())
     result = train_model(cfg, data.subset(train_idx), data.subset(valid_idx), checkpoint_dir=args.work, progress=True)
     means = [r["val_balanced_accuracy"] for r in result.history]
     samples = [r["val_balanced_accuracy"] for r in state["history"]][: args.epochs]

@@ -2,7 +2,7 @@
 
 For each task and seed: execute the default block order's plan; if it fails, try the other block
 orders in the replanning loop's order until one succeeds. Reported with the default perception
-error and with zero error. Targets (issue 2): default-order success in 25-60% (stacking) and
+error and with zero error. Targets: default-order success in 25-60% (stacking) and
 35-75% (replacement) with the default error, and for at least half of the failing seeds some
 other order succeeds.
 
@@ -48,17 +48,10 @@ def _run_seed(args: tuple[str, int]) -> dict:
     for order in block_orders():
         plan = planner.plan(task, obs, order)
         result = execute_plan(world, task, blocks, plan.actions, ExecutorConfig(record_frames=False))
-        tried.append({"order": list(order), "success": result.success, "reason": result.reason})
+        tried.append({"order": list(order), "success": result.success, "kind": result.kind, "reason": result.reason})
         if result.success:
             break
     return {"seed": seed, "tried": tried}
-
-
-def _failure_kind(reason: str) -> str:
-    for key in ("not at rest", "tilted", "off the block below", "at height", "not inside"):
-        if key in reason:
-            return key
-    return reason
 
 
 def measure(task: str, seeds: int, error: dict, workers: int) -> dict:
@@ -78,7 +71,7 @@ def measure(task: str, seeds: int, error: dict, workers: int) -> dict:
         "rescued_by_other_order": len(rescued),
         "rescued_fraction": (len(rescued) / len(failing)) if failing else None,
         "any_order_success_rate": sum(r["tried"][-1]["success"] for r in rows) / seeds,
-        "failure_kinds": dict(Counter(_failure_kind(r["tried"][0]["reason"]) for r in failing)),
+        "failure_kinds": dict(Counter(r["tried"][0]["kind"] for r in failing)),
         "executions": executions,
         "wall_seconds": round(time.perf_counter() - started, 1),
         "per_seed": rows,

@@ -42,6 +42,11 @@ def cached_features(dataset_path: str | os.PathLike, cfg: EncoderConfig, cache_d
     """
     if not cfg.freeze_backbone:
         raise ValueError("encoder.freeze_backbone: only a frozen backbone's features can be cached")
+    if cfg.backbone != "efficientnet_lite0":
+        # a small_cnn is randomly initialised: its features would belong to a backbone no bundle holds,
+        # and another process (another random state) would be served them as its own
+        raise ValueError(f"encoder.backbone: only the pretrained efficientnet_lite0's features can be cached, "
+                         f"got {cfg.backbone!r}")
     cache_dir = Path(cache_dir)
     cache_dir.mkdir(parents=True, exist_ok=True)
     with EpisodeDataset(dataset_path) as ds:

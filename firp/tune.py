@@ -77,9 +77,13 @@ def suggest_config(trial: optuna.Trial, base: TrainConfig, space: str = "paper")
     )
 
 
-def tuning_split(data: SequenceData, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(train, valid) indices: 20% of the episodes for validation, stratified."""
-    return stratified_split(data.labels.numpy(), 0.2, seed=seed)
+VALID_FRACTION = 0.2
+SPLIT_SEED = 0
+
+
+def tuning_split(labels: np.ndarray, seed: int = SPLIT_SEED) -> tuple[np.ndarray, np.ndarray]:
+    """(train, valid) indices of every trial of a study: 20% of the episodes for validation, stratified."""
+    return stratified_split(np.asarray(labels), VALID_FRACTION, seed=seed)
 
 
 def run_study(data: SequenceData, base: TrainConfig, storage: str, study_name: str, trials: int, run_dir: Path,
@@ -91,7 +95,7 @@ def run_study(data: SequenceData, base: TrainConfig, storage: str, study_name: s
     study.set_user_attr("search_space", space)
     study.set_user_attr("search_space_note", "paper grid; lr adds 3e-4, 1e-3; epochs as fractions of --epochs"
                         if space == "paper" else f"product grid {SPACES[space]}")
-    train_idx, valid_idx = tuning_split(data)
+    train_idx, valid_idx = tuning_split(data.labels.numpy())
     train, valid = data.subset(train_idx), data.subset(valid_idx)
 
     def objective(trial: optuna.Trial) -> float:
@@ -137,7 +141,7 @@ def export_top_ensemble(study: optuna.Study, data: SequenceData, dataset_path: P
     chosen = top_trials(study, k)
     if not chosen:
         raise ValueError("the study has no finished trial to export")
-    _, valid_idx = tuning_split(data)
+    _, valid_idx = tuning_split(data.labels.numpy())
     valid = data.subset(valid_idx)
     members, probs = [], []
     for trial in chosen:
@@ -158,7 +162,10 @@ def export_top_ensemble(study: optuna.Study, data: SequenceData, dataset_path: P
                  "valid_balanced_accuracy_at_threshold": ba_at_threshold},
         training_data_hash=data.dataset_hash, training_data_path=str(dataset_path),
         t_range=PlanLimits(data.actions.shape[1], data.actions.shape[1]), overwrite=True,
-        extra={"study": study.study_name, "trials": [t.number for t in chosen]},
+        extra={"study": study.study_name, "trials": [t.number for t in chosen],
+               # the episodes the threshold, the metrics and the ECE above were computed on
+               "validation_split": {"fraction": VALID_FRACTION, "seed": SPLIT_SEED,
+                                    "episodes": [data.demo_names[i] for i in valid_idx.tolist()]}},
     )
     png = reliability_png or Path("runs") / f"{study.study_name}_reliability.png"
     png.parent.mkdir(parents=True, exist_ok=True)

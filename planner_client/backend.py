@@ -35,7 +35,10 @@ class SimOutcome(Protocol):
     def success(self) -> bool: ...
 
     @property
-    def reason(self) -> str: ...
+    def reason(self) -> str: ...  # for people
+
+    @property
+    def kind(self) -> str: ...  # for programs: "success" or the world's name of the failed check
 
     @property
     def sim_seconds(self) -> float: ...

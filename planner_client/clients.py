@@ -43,6 +43,7 @@ class RemoteOutcome:
     unstable: bool
     final_blocks: dict = field(repr=False)
     frames_b64: list[str] | None = field(default=None, repr=False)  # only when asked for
+    kind: str = "success"
 
 
 class SimClient:
@@ -85,7 +86,7 @@ class SimClient:
             self._recreate(episode)
             d = self.http.request("POST", f"/v1/episodes/{episode.episode_id}/execute", json=body).json()
         return RemoteOutcome(d["success"], d["reason"], d["sim_seconds"], d["unstable"], d["final_blocks"],
-                             d.get("frames"))
+                             d.get("frames"), d["kind"])
 
     def _recreate(self, episode: RemoteEpisode) -> None:
         fresh = self.start(episode.task, episode.seed)

@@ -31,6 +31,7 @@ class Outcome:
     success: bool
     reason: str
     sim_seconds: float
+    kind: str
 
 
 class EmbeddedSim:
@@ -46,7 +47,7 @@ class EmbeddedSim:
 
     def execute(self, episode: Episode, plan: np.ndarray) -> Outcome:
         r = self.worlds.execute(episode.task, episode.true_blocks, plan, record_frames=False)
-        return Outcome(r.success, r.reason, r.sim_seconds)
+        return Outcome(r.success, r.reason, r.sim_seconds, r.kind)
 
     def close(self) -> None:
         self.worlds.close()

@@ -146,7 +146,7 @@ def create_app(settings: SimWorkerSettings | None = None, clock: Callable[[], fl
         plan = validate_plan(body.plan)  # PlanValidationError -> 422 with the contract's field and rule
         run = await state.runner.execute(episode.start, plan, body.record_frames)
         r = run.result
-        return {"episode_id": episode_id, "success": bool(r.success), "reason": r.reason,
+        return {"episode_id": episode_id, "success": bool(r.success), "reason": r.reason, "kind": r.kind,
                 "final_blocks": block_poses_json(r.final_block_poses), "sim_seconds": r.sim_seconds,
                 "unstable": bool(r.unstable), "frames": run.frames_b64}
 

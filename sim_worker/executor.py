@@ -29,13 +29,14 @@ class ExecutorConfig:
 @dataclass
 class ExecutionResult:
     success: bool
-    reason: str
+    reason: str  # for people: names blocks and numbers
     frames: np.ndarray | None  # (T, H, W, 3) uint8, frames[t] before step t
     states: np.ndarray  # (T, S) physics state before step t
     final_block_poses: np.ndarray  # (n_blocks, 4)
     sim_seconds: float
     unstable: bool = False
     warnings: dict = field(default_factory=dict)
+    kind: str = "success"  # sim_worker.tasks.OUTCOME_KINDS: what tests and reports compare
 
 
 def _physics_unstable(world: World) -> bool:
@@ -95,11 +96,12 @@ def execute_plan(world: World, task: str, initial_blocks: np.ndarray, plan: np.n
         if frames is not None:
             frames[t + 1:] = 0
         states[t + 1:] = np.nan
-        verdict = Verdict(False, "simulation became unstable")
+        verdict = Verdict(False, "simulation became unstable", "unstable")
     else:
         verdict = judge(task, world.block_states(), world.layout)
     return ExecutionResult(
         success=verdict.success, reason=verdict.reason, frames=frames, states=states,
         final_block_poses=world.block_poses(), sim_seconds=float(data.time), unstable=unstable,
         warnings={int(w): int(data.warning[w].number) for w in range(len(data.warning)) if data.warning[w].number},
+        kind=verdict.kind,
     )

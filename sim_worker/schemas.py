@@ -15,7 +15,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 from pydantic_core import PydanticCustomError
 
-from sim_worker.tasks import TASK_NAMES
+from sim_worker.tasks import OUTCOME_KINDS, TASK_NAMES
 
 SEED_MAX = 2**63 - 1
 
@@ -96,7 +96,8 @@ class EpisodeResponse(BaseModel):
 class ExecuteResponse(BaseModel):
     episode_id: str
     success: bool
-    reason: str
+    reason: str = Field(description="why, for people: names blocks and numbers")
+    kind: str = Field(description="the outcome's kind, for programs: one of " + ", ".join(OUTCOME_KINDS))
     final_blocks: dict[str, FinalBlockPose]
     sim_seconds: float
     unstable: bool

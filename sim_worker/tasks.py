@@ -25,12 +25,43 @@ class BlockState:
     speed: float  # linear speed, m/s
 
 
+#: Kinds of outcome, one per check of the success predicates (and the executor's "unstable"). The
+#: reason text names blocks and numbers; the kind is what tests and reports compare, since which of
+#: two tied blocks a reason names, or its last digit, may differ between machines.
+OUTCOME_KINDS: dict[str, str] = {
+    "success": "",
+    "not_at_rest": "not at rest",
+    "wrong_height": "at height",
+    "tilted": "tilted",
+    "off_block_below": "off the block below",
+    "not_inside": "not inside",
+    "unstable": "simulation became unstable",
+}
+
+
 @dataclass(frozen=True)
 class Verdict:
-    """A success label with the reason, so failed episodes can be explained and tested."""
+    """A success label with its kind and the reason, so failed episodes can be explained and tested."""
 
     success: bool
     reason: str
+    kind: str = "success"
+
+    def __post_init__(self) -> None:
+        if self.kind not in OUTCOME_KINDS:
+            raise ValueError(f"kind: {self.kind!r} is none of {list(OUTCOME_KINDS)}")
+        if self.success != (self.kind == "success"):
+            raise ValueError(f"kind: {self.kind!r} contradicts success={self.success}")
+
+
+def reason_kind(success: bool, reason: str) -> str:
+    """The outcome kind of a recorded ``(success, reason)`` pair (records written before kinds existed)."""
+    if success:
+        return "success"
+    for kind, marker in OUTCOME_KINDS.items():
+        if marker and marker in reason:
+            return kind
+    raise ValueError(f"reason: {reason!r} matches no outcome kind of {list(OUTCOME_KINDS)}")
 
 
 @dataclass(frozen=True)
@@ -52,6 +83,9 @@ class SuccessConfig:
     max_tilt_deg: float = 10.0
     stack_xy_tolerance: float = 0.015  # between consecutive blocks of the tower
     stack_z_tolerance: float = 0.008
+    #: blocks whose heights differ by less than this are the same level for ordering the tower (by block
+    #: index), so two blocks lying on the table are not told apart by the last bits of the physics
+    height_tie: float = 0.002
 
 
 def square_gap(p1: np.ndarray, yaw1: float, p2: np.ndarray, yaw2: float, half: float) -> float:
@@ -109,32 +143,46 @@ def check_task(task: str) -> None:
         raise ValueError(f"task: unknown task {task!r}; expected one of {list(TASK_NAMES)}")
 
 
+def tower_order(heights: list[float], tie: float) -> list[int]:
+    """Block indices from the lowest to the highest; heights within ``tie`` of the lowest block of
+    their group count as one level and keep index order, so the result does not depend on sub-mm noise."""
+    by_height = sorted(range(len(heights)), key=lambda i: (heights[i], i))
+    groups: list[list[int]] = []
+    for i in by_height:
+        if groups and heights[i] - heights[groups[-1][0]] < tie:
+            groups[-1].append(i)
+        else:
+            groups.append([i])
+    return [i for group in groups for i in sorted(group)]
+
+
 def judge(task: str, blocks: list[BlockState], layout: SceneLayout = SceneLayout(),
           config: SuccessConfig = SuccessConfig()) -> Verdict:
     """Success predicate of ``task`` on the final block states (in BLOCK_NAMES order)."""
     check_task(task)
     moving = [BLOCK_NAMES[i] for i, b in enumerate(blocks) if b.speed > config.rest_speed]
     if moving:
-        return Verdict(False, f"not at rest: {', '.join(moving)}")
+        return Verdict(False, f"not at rest: {', '.join(moving)}", "not_at_rest")
     h = layout.block_half
     if task == "stacking":
-        order = np.argsort([b.pos[2] for b in blocks])
+        order = tower_order([float(b.pos[2]) for b in blocks], config.height_tie)
         tower = [blocks[i] for i in order]
         for level, (i, b) in enumerate(zip(order, tower)):
             expected_z = h + 2 * h * level
             if abs(b.pos[2] - expected_z) > config.stack_z_tolerance:
                 return Verdict(False, f"{BLOCK_NAMES[i]} at height {b.pos[2]:.3f}, expected {expected_z:.3f} "
-                                      f"for level {level} of a tower")
+                                      f"for level {level} of a tower", "wrong_height")
             if b.up_tilt_deg > config.max_tilt_deg:
-                return Verdict(False, f"{BLOCK_NAMES[i]} tilted {b.up_tilt_deg:.1f} deg")
+                return Verdict(False, f"{BLOCK_NAMES[i]} tilted {b.up_tilt_deg:.1f} deg", "tilted")
             if level and np.linalg.norm(b.pos[:2] - tower[level - 1].pos[:2]) > config.stack_xy_tolerance:
                 return Verdict(False, f"{BLOCK_NAMES[i]} off the block below by "
-                                      f"{100 * np.linalg.norm(b.pos[:2] - tower[level - 1].pos[:2]):.1f} cm")
+                                      f"{100 * np.linalg.norm(b.pos[:2] - tower[level - 1].pos[:2]):.1f} cm",
+                               "off_block_below")
         return Verdict(True, "tower of three")
     box = layout.box("box_b")
     c = np.asarray(box.centre)
     for i, b in enumerate(blocks):
         inside = np.all(np.abs(b.pos[:2] - c) <= np.asarray(box.inner_half))
         if not inside or b.pos[2] > box.rim_height:
-            return Verdict(False, f"{BLOCK_NAMES[i]} not inside {box.name}")
+            return Verdict(False, f"{BLOCK_NAMES[i]} not inside {box.name}", "not_inside")
     return Verdict(True, "all blocks in box_b")

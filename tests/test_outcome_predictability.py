@@ -62,33 +62,49 @@ def test_raw_features_keep_the_recorded_layout():
     np.testing.assert_allclose(f[:4], [0.5, 0.0, 0.02, 0.0])  # green first: pick order
 
 
-def test_candidates_are_described_as_collect_records_them():
-    """The grasp-frame scorer describes loop candidates without executing them; its description must be
-    the one the classifier was trained on (collect's record of the same seed and order)."""
-    import json
-
-    from planner_client.tamp import PlannerConfig, TampPlanner
-    from sim_worker.collect import episode_order, simulate_episode
-    from sim_worker.perception import PoseErrorConfig
-    from sim_worker.scene import RenderConfig, SceneLayout
-    from sim_worker.world import World
+def test_candidates_are_described_as_the_loop_sees_and_plans_them():
+    """The grasp-frame scorer describes loop candidates without executing them. Its description must be
+    the scene the loop's own simulator starts (the same estimates and true blocks) and the plan the
+    loop's planner makes for it: where the plan's grasp and release steps put the TCP (forward
+    kinematics of the plan's joint targets) is where the description says the blocks are and go."""
+    from firp.contract import CATEGORIES, split_plan
+    from planner_client.embedded import EmbeddedSim
+    from planner_client.ik import rotation_yaw
+    from planner_client.tamp import TampPlanner
 
     spec = importlib.util.spec_from_file_location(
         "grasp_frame_scorer", Path(__file__).resolve().parents[1] / "benchmarks" / "grasp_frame_scorer.py")
     scorer = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(scorer)
-    seed = 3
-    order = list(episode_order(seed))
-    with World(SceneLayout(), RenderConfig.for_task("stacking", 16, 16)) as world:
-        recorded = simulate_episode(world, TampPlanner(PlannerConfig()), "stacking", seed, tuple(order),
-                                    PoseErrorConfig(), record_frames=False).attrs
-    described = scorer.candidate_attrs("stacking", seed, [order])[0]
-    recorded = json.loads(json.dumps(recorded))  # as the JSONL cache stores it
-    for key in ("block_order", "pose_estimates", "true_initial_blocks", "grasp_yaws", "place_targets"):
-        assert json.loads(json.dumps(described[key])) == recorded[key], key
-    np.testing.assert_array_equal(
-        predictability.grasp_frame_features(described, NAMES, use_estimates=True),
-        predictability.grasp_frame_features(recorded, NAMES, use_estimates=True))
+    seed, orders = 100_003, [["red", "green", "blue"], ["blue", "red", "green"]]
+    described = scorer.candidate_attrs("stacking", seed, orders)
+    sim = EmbeddedSim(image_size=16)
+    try:
+        episode = sim.start("stacking", seed)
+    finally:
+        sim.close()
+    planner = TampPlanner()
+    for order, attrs in zip(orders, described):
+        assert attrs["block_order"] == order
+        assert attrs["pose_estimates"] == episode.observation["blocks"]
+        np.testing.assert_array_equal(attrs["true_initial_blocks"], episode.true_blocks)
+        categories, targets = split_plan(planner.plan("stacking", episode.observation, tuple(order)).actions)
+
+        def starts(name: str) -> list[int]:
+            steps = np.flatnonzero(categories == CATEGORIES.index(name))
+            return [int(run[0]) for run in np.split(steps, np.flatnonzero(np.diff(steps) > 1) + 1)]
+
+        base = np.asarray(attrs["pose_estimates"][order[0]]["position"])
+        for k, (grasp, release) in enumerate(zip(starts("grasp"), starts("release"))):
+            at_grasp, rot = planner.ik.forward(targets[grasp, :7])
+            np.testing.assert_allclose(at_grasp, attrs["pose_estimates"][order[k + 1]]["position"], atol=1e-3)
+            assert abs(rotation_yaw(rot) - attrs["grasp_yaws"][k]) < 1e-3
+            at_release, _ = planner.ik.forward(targets[release, :7])
+            np.testing.assert_allclose(at_release, attrs["place_targets"][k][:3], atol=1e-3)
+            np.testing.assert_allclose(at_release, base + [0.0, 0.0, 0.04 * (k + 1) + 0.005], atol=1e-3)
+    # two orders of one scene: the same scene, other picks
+    assert described[0]["grasp_yaws"] != described[1]["grasp_yaws"] or \
+        described[0]["place_targets"] != described[1]["place_targets"]
 
 
 def test_wall_clearances_along_and_across_the_fingers():

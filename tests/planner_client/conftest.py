@@ -7,6 +7,7 @@ the worker leave it restarted, so every test reads ``launcher.sim_url`` when it 
 from __future__ import annotations
 
 import json
+import socket
 import threading
 import time
 from dataclasses import dataclass, field
@@ -47,7 +48,9 @@ class StubServer:
         host, port = self.server.server_address[:2]
         return f"http://{host}:{port}"
 
-    def start(self, port: int = 0) -> "StubServer":
+    def start(self, sock: socket.socket | None = None) -> "StubServer":
+        """Serve on a new loopback port, or on ``sock``: a socket the test bound earlier (see
+        :func:`refusing_socket`), so the port it promised a client cannot be taken by anyone else."""
         stub = self
 
         class Handler(BaseHTTPRequestHandler):
@@ -69,7 +72,14 @@ class StubServer:
             def log_message(self, *args) -> None:
                 pass
 
-        self.server = ThreadingHTTPServer(("127.0.0.1", port), Handler)
+        if sock is None:
+            self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        else:
+            self.server = ThreadingHTTPServer(sock.getsockname(), Handler, bind_and_activate=False)
+            self.server.socket.close()
+            self.server.socket = sock
+            self.server.server_address = sock.getsockname()
+            self.server.server_activate()  # listen(): from now on connections are accepted
         threading.Thread(target=self.server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True).start()
         return self
 
@@ -79,13 +89,21 @@ class StubServer:
             self.server.server_close()
 
 
+def refusing_socket() -> socket.socket:
+    """A loopback TCP socket bound to a port the OS picked, not listening: connecting to it is refused
+    (what a server that is not up yet looks like), and no other process can bind the port meanwhile."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.bind(("127.0.0.1", 0))
+    return sock
+
+
 @pytest.fixture
 def stub():
     """``stub(script)`` starts a scripted loopback server; all are stopped after the test."""
     servers: list[StubServer] = []
 
-    def make(script: list[tuple[int, object]], port: int = 0) -> StubServer:
-        servers.append(StubServer(list(script)).start(port))
+    def make(script: list[tuple[int, object]], sock: socket.socket | None = None) -> StubServer:
+        servers.append(StubServer(list(script)).start(sock))
         return servers[-1]
 
     yield make

@@ -1,6 +1,9 @@
 """The trial loop with real parts: the embedded simulator or a launched sim worker, and the scoring
-service launched on loopback with a tiny random bundle (it scores ~0.45 for every plan, so the
-threshold is set to force each path: 0.0 accepts the first plan, 1.01 never accepts).
+service launched on loopback with a tiny seeded random bundle (it scores every plan about alike, so
+the threshold is set to force a path: 0.0 accepts the first plan, 1.01 never accepts). The accept
+rule itself -- the first plan at or above the threshold, whichever of the six it is -- is checked with
+a scripted scorer; the shipped bundles' loop is replayed against the committed main job in
+tests/golden/test_main_job.py.
 
 Also: resume without double counting and refusing other settings, the report's numbers against
 hand-computed records, the CLI end to end with both services launched, and its missing-bundle error.
@@ -14,6 +17,7 @@ import signal
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from planner_client.__main__ import main
@@ -38,9 +42,32 @@ def sim_and_planner():
 
 @pytest.fixture(scope="module")
 def tiny_bundle(tmp_path_factory):
+    import torch
+
     from tests.firp.bundle_helpers import export_tiny
 
+    torch.manual_seed(0)  # the same random members in every run: the scores below are reproducible
     return export_tiny(tmp_path_factory.mktemp("bundle") / "tiny")
+
+
+class ScriptedScorer:
+    """The scoring service's two calls, answered from a script: the k-th plan scored gets ``scores[k]``.
+
+    What a bundle would say does not matter to the loop's rule (the first plan at or above the
+    threshold is executed, else the last one scored); a script reaches every branch of it, which an
+    untrained bundle scoring every plan alike cannot. It keeps the plans it was sent."""
+
+    def __init__(self, scores: list[float], threshold: float):
+        self.scores, self.threshold = list(scores), threshold
+        self.plans: list = []
+
+    def model(self) -> dict:
+        return {"name": "scripted", "version": "1", "task": "stacking", "contract": {"t_min": T, "t_max": T}}
+
+    def score(self, image_b64: str, plan, task: str) -> dict:
+        assert image_b64 and task == "stacking"
+        self.plans.append(plan)
+        return {"score": self.scores[len(self.plans) - 1], "threshold": self.threshold}
 
 
 @pytest.fixture(scope="module")
@@ -122,11 +149,56 @@ def test_service_threshold_is_used_when_none_is_given(tmp_path, sim_and_planner,
     sim, planner = sim_and_planner
     [r] = run_trials(RunConfig(trials=1, out=tmp_path / "r.jsonl", max_iterations=2, oracle=False),
                      sim, planner, scorer)
-    assert r["threshold"] == 0.5 and r["run"]["threshold"] is None and "oracle_success" not in r
-    # stop at the first score >= threshold, else at the budget
-    assert all(s < 0.5 for s in r["scores"][:-1])
-    assert r["firp_accepted"] == (r["scores"][-1] >= 0.5)
-    assert r["firp_iterations"] == 2 or r["firp_accepted"]
+    assert r["threshold"] == r["service_threshold"] == 0.5 and r["run"]["threshold"] is None
+    assert "oracle_success" not in r
+
+
+@pytest.mark.parametrize("accept_at", [1, 2, 3, 4, 5, 6])
+def test_the_first_plan_at_or_above_the_threshold_is_the_one_executed(tmp_path, sim_and_planner, accept_at):
+    sim, planner = sim_and_planner
+    scores = [0.1] * 6
+    scores[accept_at - 1] = 0.6  # exactly at the service's threshold: accepted
+    scores[accept_at:] = [0.9] * (6 - accept_at)  # better plans later must not be reached
+    scripted = ScriptedScorer(scores, threshold=0.6)
+    executed_plans = []
+
+    class Recording:  # the real simulator, noting what it is asked to execute
+        def start(self, task, seed):
+            return sim.start(task, seed)
+
+        def execute(self, episode, plan):
+            executed_plans.append(plan)
+            return sim.execute(episode, plan)
+
+        def close(self):
+            pass
+
+    [r] = run_trials(RunConfig(trials=1, out=tmp_path / "r.jsonl", max_iterations=6, oracle=False), Recording(),
+                     planner, scripted)
+    order = ORDERS[accept_at - 1]
+    assert (r["firp_accepted"], r["firp_iterations"], r["firp_order"]) == (True, accept_at, order)
+    assert r["scores"] == scores[:accept_at] and r["threshold"] == 0.6
+    # the plans scored were the planner's plans for the orders in the loop's order, and the accepted one ran
+    episode = sim.start("stacking", r["seed"])
+    planned = [planner.plan("stacking", episode.observation, tuple(o)).actions for o in ORDERS[:accept_at]]
+    assert len(scripted.plans) == accept_at
+    for sent, plan in zip(scripted.plans, planned):
+        np.testing.assert_array_equal(sent, plan)
+    np.testing.assert_array_equal(executed_plans[0], planned[-1])  # the accepted plan ran first...
+    assert len(executed_plans) == (1 if accept_at == 1 else 2)  # ...then TAMP alone's, unless it was the same
+    executed = sim.execute(episode, planned[-1])
+    assert (r["firp_success"], r["firp_reason"]) == (executed.success, executed.reason)
+    assert r["tamp_reused_firp_execution"] == (accept_at == 1)
+    first = sim.execute(episode, planned[0])
+    assert (r["tamp_success"], r["tamp_reason"]) == (first.success, first.reason)
+
+
+def test_the_clients_threshold_overrides_the_services(tmp_path, sim_and_planner):
+    sim, planner = sim_and_planner
+    scripted = ScriptedScorer([0.3, 0.55, 0.9], threshold=0.6)
+    [r] = run_trials(RunConfig(trials=1, out=tmp_path / "r.jsonl", max_iterations=3, threshold=0.5, oracle=False),
+                     sim, planner, scripted)
+    assert (r["firp_iterations"], r["firp_order"], r["threshold"], r["service_threshold"]) == (2, ORDERS[1], 0.5, 0.6)
 
 
 def test_a_horizon_outside_the_bundles_range_fails_before_any_trial(tmp_path, sim_and_planner, scorer):

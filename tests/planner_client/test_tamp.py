@@ -7,7 +7,7 @@ import pytest
 
 from firp.contract import CATEGORIES, PICK_PLACE_SEQUENCE, split_plan, validate_plan
 from planner_client.ik import IKFailure, PandaIK
-from planner_client.tamp import PlannerConfig, TampPlanner, block_orders
+from planner_client.tamp import TampPlanner, block_orders
 from sim_worker.perception import PoseErrorConfig, observation
 from sim_worker.scene import SceneLayout
 from sim_worker.tasks import sample_initial_blocks
@@ -52,13 +52,21 @@ def test_grasp_step_puts_the_tcp_on_the_estimated_block(planner):
 
 
 def test_stacking_places_on_the_estimated_base(planner):
+    """Each moved block is released 5 mm above its resting height on the estimated base (4 cm blocks),
+    and the plan's joint targets really put the TCP there (forward kinematics of the release steps)."""
     blocks = sample_initial_blocks("stacking", 2)
     obs = observation(blocks, 2, LAYOUT)
     plan = planner.plan("stacking", obs, ("blue", "red", "green"))
     base = np.asarray(obs["blocks"]["blue"]["position"])
-    for level, target in enumerate(plan.place_targets, start=1):
-        np.testing.assert_allclose(target[:2], base[:2], atol=1e-9)
-        assert target[2] == pytest.approx(base[2] + 0.04 * level + PlannerConfig().release_gap)
+    categories, targets = split_plan(plan.actions)
+    releases = np.flatnonzero(categories == CATEGORIES.index("release"))
+    first_of_each = [int(run[0]) for run in np.split(releases, np.flatnonzero(np.diff(releases) > 1) + 1)]
+    assert len(plan.place_targets) == len(first_of_each) == 2
+    for level, (target, step) in enumerate(zip(plan.place_targets, first_of_each), start=1):
+        expected = np.array([base[0], base[1], base[2] + 0.04 * level + 0.005])
+        np.testing.assert_allclose(target[:3], expected, atol=1e-9)
+        tcp, _ = planner.ik.forward(targets[step, :7])
+        np.testing.assert_allclose(tcp, expected, atol=1e-3)
 
 
 def test_orders_start_with_the_default_and_cover_all_permutations():

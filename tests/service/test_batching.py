@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from typing import Any
 
@@ -37,18 +38,29 @@ def _concurrently(c: ServiceClient, requests: list[tuple[str, dict[str, Any]]]) 
     return answers  # type: ignore[return-value]
 
 
-def _slow_passes(app, seconds: float) -> list[int]:
-    """Make every pass take ``seconds`` longer (so requests queue up behind it); returns the number
-    of plans of each pass, in order."""
-    model = app.state.model
+def _gated_passes(app, requests: int) -> list[int]:
+    """Hold the first pass until all ``requests`` are either in it or waiting in the batcher's queue,
+    so those left over must share the passes after it (no sleep: the gate opens on the queue's own
+    count). Returns the number of plans of each pass, in order."""
+    model, batcher = app.state.model, app.state.batcher
     real, passes = model.score_jobs, []
+    opened = threading.Event()
 
-    def slow(jobs):
+    def waiting() -> int:
+        return batcher._receive.statistics().current_buffer_used + (batcher._carry is not None)
+
+    def gated(jobs):
+        if not opened.is_set():
+            # the worker thread polls the queue's counter, the event loop keeps queueing requests
+            deadline = time.monotonic() + 60
+            while len(jobs) + waiting() < requests:
+                assert time.monotonic() < deadline, f"only {len(jobs) + waiting()} of {requests} requests arrived"
+                opened.wait(0.002)
+            opened.set()
         passes.append(sum(len(j.plans) for j in jobs))
-        time.sleep(seconds)
         return real(jobs)
 
-    model.score_jobs = slow
+    model.score_jobs = gated
     return passes
 
 
@@ -63,7 +75,7 @@ def test_concurrent_requests_share_passes_and_get_their_own_answers(tiny_bundle)
     requests.append(("/v1/score/batch", {"image": encode_image(images[1]), "plans": [p.tolist() for p in plans[:2]]}))
     requests.append(("/v1/score", {"image": "%%%", "plan": plans[0].tolist()}))  # a bad image fails alone too
     with ServiceClient(app) as c:
-        passes = _slow_passes(app, 0.2)
+        passes = _gated_passes(app, requests=len(requests))
         answers = _concurrently(c, requests)
         metrics = c.get("/metrics").text
     scorer = EnsembleScorer(load_bundle(tiny_bundle))
@@ -81,8 +93,9 @@ def test_concurrent_requests_share_passes_and_get_their_own_answers(tiny_bundle)
         assert r["score"] == pytest.approx(float(scorer.score(images[1], p[None]).probabilities[0]), abs=1e-6)
     assert answers[3].status_code == 422 and answers[3].json()["error"]["field"] == "plan[4]"
     assert answers[-1].status_code == 422 and answers[-1].json()["error"]["rule"] == "base64"
-    # nine requests, and the ones that queued behind the first pass ran together
-    assert sum(passes) == 1 + 6 + 2 + 1 and len(passes) < len(requests)
+    # nine requests (ten plans): the first pass took what had arrived, the rest queued behind it and
+    # shared the second pass (32 plans fit in one)
+    assert sum(passes) == 6 + 1 + 2 + 1 and len(passes) <= 2
     count = float(metrics.split("firp_micro_batch_requests_count ")[1].split()[0])
     assert count == len(passes)
 
@@ -92,21 +105,27 @@ def test_a_pass_holds_at_most_max_plans(tiny_bundle):
     image = encode_image(random_image(40))
     requests = [("/v1/score/batch", {"image": image, "plans": valid_plans(2, 8, seed=s).tolist()}) for s in range(5)]
     with ServiceClient(app) as c:
-        passes = _slow_passes(app, 0.1)
+        passes = _gated_passes(app, requests=len(requests))
         answers = _concurrently(c, requests)
     assert all(a.status_code == 200 for a in answers)
-    assert max(passes) <= 3 and sum(passes) == 10  # 2-plan requests never pair up under a 3-plan cap
+    assert passes == [2] * 5  # 2-plan requests never pair up under a 3-plan cap
 
 
 def test_a_lone_request_is_not_held_back(tiny_bundle):
-    app = create_app(ServiceSettings(bundle=tiny_bundle, **STRICT))
-    body = {"image": encode_image(random_image(40)), "plan": valid_plans(1, 8)[0].tolist()}
-    with ServiceClient(app) as c:
-        c.post("/v1/score", json=body)
-        start = time.perf_counter()
-        for _ in range(5):
-            assert c.post("/v1/score", json=body).status_code == 200
-        assert (time.perf_counter() - start) / 5 < 0.5  # no batching window: nothing waits for company
+    """No batching window: with one job queued, the next batch is that job, taken without waiting for
+    company (were the runner to wait for a second job, this would hang until the guard below)."""
+    from service.batching import MicroBatcher, _Pending
+    from service.scorer import ScoreJob
+
+    batcher = MicroBatcher(model=None, max_plans=32)  # type: ignore[arg-type]  # _next_batch never scores
+    lone = _Pending(ScoreJob(b"k", lambda: random_image(40), [valid_plans(1, 8)[0]], ["plan"]))
+
+    async def next_batch():
+        with anyio.fail_after(30):  # a hang guard, not a speed bound
+            batcher._send.send_nowait(lone)
+            return await batcher._next_batch()
+
+    assert anyio.run(next_batch) == [lone]
 
 
 def test_micro_batching_can_be_switched_off(tiny_bundle):

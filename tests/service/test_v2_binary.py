@@ -7,7 +7,6 @@ import json
 import socket
 import struct
 import threading
-import time
 from collections.abc import Iterator
 
 import numpy as np
@@ -209,20 +208,25 @@ def loopback(settings) -> Iterator[str]:
     """The service in a uvicorn server on a free loopback port, in a thread of this process."""
     import uvicorn
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning",
-                                           access_log=False, lifespan="on"))
-    thread = threading.Thread(target=server.run, daemon=True)
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))  # bound here and handed over: no other process can take the port meanwhile
+    port = sock.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(create_app(settings), log_level="warning", access_log=False, lifespan="on"))
+    started = threading.Event()
+    real_startup = server.startup
+
+    async def startup(sockets=None):
+        await real_startup(sockets=sockets)
+        started.set()
+
+    server.startup = startup
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
-    deadline = time.monotonic() + 60
-    while not server.started:
-        assert thread.is_alive() and time.monotonic() < deadline, "the loopback service did not start"
-        time.sleep(0.05)
+    assert started.wait(60) and server.started, "the loopback service did not start"
     yield f"127.0.0.1:{port}"
     server.should_exit = True
     thread.join(timeout=30)
+    sock.close()
 
 
 @pytest.mark.parametrize("binary", [True, False], ids=["binary", "json"])

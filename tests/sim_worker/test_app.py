@@ -26,7 +26,7 @@ from sim_worker.imaging import decode_png_b64
 from sim_worker.perception import PoseErrorConfig
 from sim_worker.scene import RenderConfig, SceneLayout
 from sim_worker.settings import SimWorkerSettings
-from sim_worker.tasks import sample_initial_blocks
+from sim_worker.tasks import reason_kind, sample_initial_blocks
 from sim_worker.world import World
 
 T = 16
@@ -122,8 +122,9 @@ def test_every_execution_starts_from_the_initial_state(client, planner):
     again = client.post(url, json={"plan": plan_a.tolist()}).json()
     assert first == again
     assert other["final_blocks"] != first["final_blocks"]
-    assert set(first) == {"episode_id", "success", "reason", "final_blocks", "sim_seconds", "unstable"}
+    assert set(first) == {"episode_id", "success", "reason", "kind", "final_blocks", "sim_seconds", "unstable"}
     assert isinstance(first["success"], bool) and first["reason"] and first["unstable"] is False
+    assert first["kind"] == reason_kind(first["success"], first["reason"])
     assert first["sim_seconds"] == pytest.approx(T / 4 + 1.5, abs=0.01)
     assert set(first["final_blocks"]) == {"red", "green", "blue"}
 

@@ -82,3 +82,25 @@ def test_invalid_plan_is_rejected_before_anything_runs(small_world, planner):
     with pytest.raises(PlanValidationError) as err:
         execute_plan(small_world, "stacking", blocks, plan)
     assert err.value.rule == "joint_limits" and err.value.field == "plan[3][7]"
+
+
+def test_a_simulation_that_blows_up_ends_unstable_with_the_rest_blanked(planner, tmp_path, monkeypatch):
+    """Negative joint damping pumps energy into the arm: the physics diverges within the first step.
+    The execution stops there, is labelled a failure of kind "unstable", and nothing after the break
+    looks like a real frame or state (zeros, NaN) -- a dataset must not learn from them."""
+    from sim_worker.scene import RenderConfig
+    from sim_worker.world import World
+
+    monkeypatch.chdir(tmp_path)  # MuJoCo writes its warnings to MUJOCO_LOG.TXT in the working directory
+    blocks = sample_initial_blocks("stacking", 1)
+    with World(render=RenderConfig(height=32, width=32)) as world:
+        plan = planner.plan("stacking", observation(blocks, 1, world.layout)).actions
+        world.model.dof_damping[:] = -50.0
+        result = execute_plan(world, "stacking", blocks, plan)
+    assert result.unstable and not result.success
+    assert (result.kind, result.reason) == ("unstable", "simulation became unstable")
+    broke = int(np.flatnonzero(np.isnan(result.states).any(axis=1))[0])  # the first step never reached
+    assert 0 < broke < SHORT_T and np.isnan(result.states[broke:]).all()
+    assert np.isfinite(result.states[:broke]).all()
+    assert result.frames[:broke].any(axis=(1, 2, 3)).all() and not result.frames[broke:].any()
+    assert result.warnings  # MuJoCo's own warning counters say why

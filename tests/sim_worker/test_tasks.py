@@ -115,3 +115,44 @@ def test_square_gap_by_hand():
 def test_unknown_task_is_rejected():
     with pytest.raises(ValueError, match="task: unknown task 'juggling'"):
         sample_initial_blocks("juggling", 0)
+
+
+def test_tied_heights_are_ordered_by_block_index_not_by_the_last_bits_of_the_physics():
+    """Two blocks lying on the table are one level: which of them the verdict names (and, when one is
+    tilted, which check fails first) must not depend on a height difference of a few nanometres."""
+    from sim_worker.tasks import BlockState, judge, tower_order
+
+    assert tower_order([0.02 + 1e-9, 0.02, 0.06], tie=0.002) == [0, 1, 2]
+    assert tower_order([0.02, 0.02 + 1e-9, 0.06], tie=0.002) == [0, 1, 2]
+    assert tower_order([0.10, 0.06, 0.02], tie=0.002) == [2, 1, 0]
+    flat = lambda x, z, tilt=0.0: BlockState(np.array([x, 0.0, z]), tilt, 0.0)  # noqa: E731
+    for eps in (0.0, 1e-9, -1e-9):
+        # red and green on the table, green tilted; blue on top of red
+        blocks = [flat(0.5, 0.02 + eps), flat(0.6, 0.02, tilt=20.0), flat(0.5, 0.06)]
+        verdict = judge("stacking", blocks)
+        assert (verdict.success, verdict.kind) == (False, "wrong_height")
+        assert verdict.reason.startswith("green at height 0.020, expected 0.060")
+
+
+def test_each_check_of_the_predicates_has_its_kind():
+    from sim_worker.tasks import OUTCOME_KINDS, BlockState, Verdict, judge, reason_kind
+
+    block = lambda x, y, z, tilt=0.0, speed=0.0: BlockState(np.array([x, y, z]), tilt, speed)  # noqa: E731
+    tower = [block(0.5, 0.0, 0.02), block(0.5, 0.0, 0.06), block(0.5, 0.0, 0.10)]
+    assert judge("stacking", tower).kind == "success"
+    cases = {
+        "not_at_rest": [block(0.5, 0.0, 0.02), block(0.5, 0.0, 0.06), block(0.5, 0.0, 0.10, speed=0.5)],
+        "wrong_height": [block(0.5, 0.0, 0.02), block(0.7, 0.0, 0.02), block(0.5, 0.0, 0.06)],
+        "tilted": [block(0.5, 0.0, 0.02), block(0.5, 0.0, 0.06, tilt=15.0), block(0.5, 0.0, 0.10)],
+        "off_block_below": [block(0.5, 0.0, 0.02), block(0.52, 0.0, 0.06), block(0.52, 0.0, 0.10)],
+    }
+    for kind, blocks in cases.items():
+        verdict = judge("stacking", blocks)
+        assert (verdict.success, verdict.kind) == (False, kind), verdict
+        assert reason_kind(False, verdict.reason) == kind  # records without kinds read back the same
+    assert judge("replacement", tower).kind == "not_inside"
+    assert set(OUTCOME_KINDS) == {"success", *cases, "not_inside", "unstable"}
+    with pytest.raises(ValueError, match="contradicts"):
+        Verdict(True, "x", "tilted")
+    with pytest.raises(ValueError, match="matches no outcome kind"):
+        reason_kind(False, "the arm fell off")
