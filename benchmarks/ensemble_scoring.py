@@ -2,7 +2,7 @@
 
 Builds an M-member bundle of randomly initialised FIRP members (default FIRPConfig sizes: the
 member cost does not depend on the weights' values), or loads ``--bundle DIR`` (e.g. the shipped
-``firp/bundles/stacking``), then times the member computation of
+``models/stacking``), then times the member computation of
 :class:`firp.ensemble.EnsembleScorer` with each ``--strategies`` (default ``loop vmap fused``) for
 N plans of T steps, interleaving them so that load from other processes hits all alike. Reports
 min and median over repeats, and each strategy's largest probability difference from the loop.
@@ -10,7 +10,7 @@ The backbone runs once per call and is timed apart (``--backbone efficientnet_li
 real one).
 
     python benchmarks/ensemble_scoring.py --threads 1 --repeats 15
-    python benchmarks/ensemble_scoring.py --bundle firp/bundles/stacking --N 1 8 32 --repeats 20
+    python benchmarks/ensemble_scoring.py --bundle models/stacking --N 1 8 32 --repeats 20
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from firp.bundle import BundleMember, export_bundle, load_bundle
-from firp.contract import JOINT_LOWER, JOINT_UPPER, make_plan
+from firp.core.contract import JOINT_LOWER, JOINT_UPPER, make_plan
 from firp.ensemble import EnsembleScorer
 from firp.model import EncoderConfig, FIRPConfig, build_model
 from firp.model.encoder import build_backbone

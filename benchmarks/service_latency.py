@@ -19,7 +19,7 @@ until ``/readyz`` says ready, then measures with keep-alive HTTP clients:
 Targets (issue 4; for T = 120 and five members): single p50 <= 15 ms, p99 <= 40 ms; batch of 32
 >= 200 plans/s; concurrent: zero errors.
 
-    python benchmarks/service_latency.py --bundle firp/bundles/stacking --compare-no-micro-batch --compare-threads 2
+    python benchmarks/service_latency.py --bundle models/stacking --compare-no-micro-batch --compare-threads 2
     python benchmarks/service_latency.py --bundle /tmp/tiny --T 16 --seconds 5 --repeats 50 --out /tmp/smoke.json
 
 The client process imports neither torch nor mujoco; the server runs with ``--threads`` torch
@@ -48,7 +48,7 @@ import httpx
 import numpy as np
 from PIL import Image
 
-from firp.contract import JOINT_LOWER, JOINT_UPPER, make_plan
+from firp.core.contract import JOINT_LOWER, JOINT_UPPER, make_plan
 
 ROOT = Path(__file__).resolve().parents[1]
 SIM_RESULTS = ROOT / "docs" / "results" / "sim_throughput.json"
@@ -232,7 +232,7 @@ def concurrent_run(base: str, image: str, plan: list[list[float]], clients: int,
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--bundle", type=Path, default=ROOT / "firp" / "bundles" / "stacking",
+    ap.add_argument("--bundle", type=Path, default=ROOT / "models" / "stacking",
                     help="bundle directory to serve (default: the shipped stacking bundle)")
     ap.add_argument("--T", type=int, default=120, help="plan length (must lie in the bundle's T range)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads of the server")

@@ -22,7 +22,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco  # noqa: E402
 
 from planner_client.tamp import TampPlanner  # noqa: E402
-from sim_worker.collect import episode_order  # noqa: E402
+from planner_client.collect import episode_order  # noqa: E402
 from sim_worker.executor import ExecutorConfig, execute_plan  # noqa: E402
 from sim_worker.perception import observation  # noqa: E402
 from sim_worker.tasks import sample_initial_blocks  # noqa: E402

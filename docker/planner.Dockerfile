@@ -20,6 +20,7 @@ WORKDIR /app
 
 COPY pyproject.toml ./
 COPY firp ./firp
+COPY firp_cli ./firp_cli
 COPY sim_worker ./sim_worker
 COPY planner_client ./planner_client
 
@@ -27,5 +28,5 @@ RUN pip install -e ".[planner]" \
  && mkdir -p /app/runs && chown firp:firp /app/runs
 
 USER firp
-ENTRYPOINT ["python", "-m", "planner_client"]
+ENTRYPOINT ["firp"]
 CMD ["run", "--trials", "50"]

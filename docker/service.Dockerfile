@@ -10,10 +10,13 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 RUN useradd --create-home --uid 10001 --user-group firp
 WORKDIR /app
 
-# Only what the service imports: the shared contract/method package and the service itself.
+# Only what the service imports: the method (with the shared core), the service, the firp command
+# and the shipped bundles (models/, found as /app/models).
 COPY pyproject.toml ./
 COPY firp ./firp
+COPY firp_cli ./firp_cli
 COPY service ./service
+COPY models ./models
 
 # The README's install steps: CPU torch first (pinned; from the CPU index, so pip cannot pull a
 # multi-GB CUDA build), then the service extra.
@@ -22,5 +25,5 @@ RUN pip install --index-url https://download.pytorch.org/whl/cpu torch==2.13.0 \
 
 USER firp
 EXPOSE 8001
-ENTRYPOINT ["python", "-m", "service"]
-CMD ["--host", "0.0.0.0", "--port", "8001", "--bundle", "firp/bundles/stacking"]
+ENV FIRP_SERVICE_HOST=0.0.0.0 FIRP_SERVICE_PORT=8001
+ENTRYPOINT ["firp", "serve"]

@@ -17,15 +17,16 @@ RUN apt-get update \
 RUN useradd --create-home --uid 10001 --user-group firp
 WORKDIR /app
 
-# sim_worker needs the contract (firp) and, for `collect`, the planner's package.
+# The world and the shared core it imports (firp/core, inside the firp package), and the firp command.
+# No planner, no method code is run here, no bundle is needed.
 COPY pyproject.toml ./
 COPY firp ./firp
+COPY firp_cli ./firp_cli
 COPY sim_worker ./sim_worker
-COPY planner_client ./planner_client
 
 RUN pip install -e ".[sim]"
 
 USER firp
 EXPOSE 8002
-ENTRYPOINT ["python", "-m", "sim_worker"]
-CMD ["serve", "--host", "0.0.0.0", "--port", "8002"]
+ENV FIRP_SIM_HOST=0.0.0.0 FIRP_SIM_PORT=8002
+ENTRYPOINT ["firp", "sim"]

@@ -28,7 +28,6 @@ can rewrite the manifest can rewrite the hashes too.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import math
 import os
@@ -44,7 +43,8 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
-from firp.contract import CATEGORIES, CONTRACT_VERSION, FPS, PLAN_WIDTH, T_MAX, T_MIN, PlanLimits
+from firp.core.bundle_format import BACKBONE_FILE, BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, MANIFEST_NAME, sha256_file
+from firp.core.contract import CATEGORIES, CONTRACT_VERSION, FPS, PLAN_WIDTH, T_MAX, T_MIN, PlanLimits
 from firp.model.baselines import MODEL_KINDS, build_model
 from firp.model.config import EncoderConfig, FIRPConfig
 from firp.model.encoder import EFFICIENTNET_LITE0_SHA256, build_backbone
@@ -62,12 +62,6 @@ __all__ = [
     "load_bundle",
     "sha256_file",
 ]
-
-BUNDLE_FORMAT = "firp-ensemble-bundle"
-#: Bumped when the layout or the meaning of a manifest field changes; readers accept only equal.
-BUNDLE_FORMAT_VERSION = 1
-MANIFEST_NAME = "manifest.json"
-BACKBONE_FILE = "backbone.safetensors"
 
 #: Kinds that need frames *after* execution: they cannot score a plan beforehand.
 _POST_EXECUTION_KINDS = ("oracle",)
@@ -123,15 +117,6 @@ class Bundle:
 # --------------------------------------------------------------------------------------------
 # helpers
 # --------------------------------------------------------------------------------------------
-
-
-def sha256_file(path: str | os.PathLike) -> str:
-    """Hex sha256 of a file, read in 1 MiB blocks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def backbone_key(cfg: EncoderConfig) -> dict[str, Any]:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from firp.episodes import EpisodeDataset
+from firp.core.episodes import EpisodeDataset
 from firp.features import DEFAULT_CACHE_DIR, cached_features
 from firp.model.config import EncoderConfig
 

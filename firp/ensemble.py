@@ -26,7 +26,7 @@ probability, and their mean is usually better calibrated than one member's. Why 
     hidden weights concatenated with the prior's first layer (three matmuls per step instead of six),
     the prior's std never computed (scoring uses means), and the decoder and the head after the loop.
 
-  Measured with ``benchmarks/ensemble_scoring.py --bundle firp/bundles/stacking --N 1 8 32
+  Measured with ``benchmarks/ensemble_scoring.py --bundle models/stacking --N 1 8 32
   --repeats 15`` (the shipped bundle: five members, 128-d RSSM, chunks of 4; T = 120; one thread;
   this project's 2-core CPU shared with two training processes, load average 4, so absolute
   times are inflated and noisy; result in ``docs/results/ensemble_scoring.json``), min over
@@ -67,7 +67,7 @@ from torch import Tensor, nn
 from torch.func import functional_call, stack_module_state, vmap
 
 from firp.bundle import Bundle, backbone_key
-from firp.contract import PLAN_WIDTH, T_MIN, PlanValidationError, validate_plan
+from firp.core.contract import PLAN_WIDTH, T_MIN, PlanValidationError, validate_plan
 from firp.model.config import FIRPConfig
 from firp.model.encoder import ImageEncoder
 from firp.model.firp import FIRP, chunk_actions, spread_chunk_weights
@@ -505,7 +505,7 @@ class EnsembleScorer:
     def score(self, image: np.ndarray, plans: np.ndarray) -> EnsembleResult:
         """Score ``plans`` (N, T, 16) for the scene in ``image`` (uint8 (H, W, 3)).
 
-        Raises :class:`~firp.contract.PlanValidationError` (from the contract's validator, field
+        Raises :class:`~firp.core.contract.PlanValidationError` (from the contract's validator, field
         ``plans[i]...``) for the first plan that breaks the contract or the bundle's T range.
         """
         image, checked = self._check_inputs(image, plans)  # everything checked before any compute

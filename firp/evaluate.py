@@ -6,7 +6,8 @@ tested on the same episodes; results are written per (repeat, method) as they fi
 interrupted evaluation resumes without retraining what is done. DVD (the paper's video baseline)
 needs its authors' published weights and cannot run here: it is reported as not run.
 
-    python -m firp.evaluate --data data/stacking.h5 --repeats 5
+    firp evaluate --data data/stacking.h5 --repeats 5            # the product preset
+    firp evaluate --data data/stacking.h5 --repeats 5 --preset paper
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import re
 import statistics
 import time
 from dataclasses import replace
@@ -22,8 +24,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from firp.cli import add_model_flags, add_training_flags, check_data_flag, int_in_range, model_config_from, \
-    non_negative_float
+from firp.core.cli_types import int_in_range
+from firp.flags import add_loss_flags, add_model_flags, add_training_flags, check_data_flag, recipe_flags, recipe_from
 from firp.data import SequenceData, load_sequences, stratified_split
 from firp.metrics import balanced_accuracy, choose_threshold
 
@@ -34,9 +36,9 @@ METHODS: dict[str, dict] = {
     "a_mlp": {"kind": "a_mlp"},
     "a_mlp_image": {"kind": "a_mlp_image"},
     "gru": {"kind": "gru"},
-    "firp": {"kind": "firp", "alpha": 0.0, "beta": 0.0},
-    "firp_ttc": {"kind": "firp", "beta": 0.0},
-    "firp_atc": {"kind": "firp", "alpha": 0.0},
+    "firp": {"kind": "firp", "loss": {"alpha": 0.0, "beta": 0.0}},
+    "firp_ttc": {"kind": "firp", "loss": {"beta": 0.0}},
+    "firp_atc": {"kind": "firp", "loss": {"alpha": 0.0}},
     "firp_tcr": {"kind": "firp"},
     "oracle": {"kind": "oracle"},
     # an MLP on the plan's grasp-frame description alone (needs --plan-geometry): what the others add to it
@@ -51,6 +53,20 @@ BASELINES = ("a_mlp", "a_mlp_image", "gru", "geometry_mlp")
 NOT_RUN = {"dvd": "needs the DVD authors' published weights, which cannot be downloaded here"}
 #: the issue's bar: the FIRP ensemble at least this far above the best non-oracle baseline
 TARGET_MARGIN = 0.05
+
+
+_RUN_NAME = re.compile(r"r(?P<repeat>\d+)-(?P<method>\w+)")
+
+
+def run_name(repeat: int, method: str) -> str:
+    """A (repeat, method) run's name: its row is ``<out>/<name>.json``, its checkpoint ``<out>/<name>/checkpoint``."""
+    return f"r{repeat}-{method}"
+
+
+def parse_run_name(name: str) -> tuple[int, str] | None:
+    """``(repeat, method)`` of a name :func:`run_name` made, else None."""
+    match = _RUN_NAME.fullmatch(name)
+    return (int(match["repeat"]), match["method"]) if match else None
 
 
 def split_indices(labels: np.ndarray, repeat: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -68,14 +84,22 @@ def held_out_metrics(y_valid: np.ndarray, p_valid: np.ndarray, y_test: np.ndarra
             "valid_threshold": threshold}
 
 
+def method_config(name: str, base: TrainConfig) -> TrainConfig:
+    """``base`` as method ``name`` of :data:`METHODS` trains: its kind, loss weights and baseline settings."""
+    overrides = dict(METHODS[name])
+    baseline, loss = overrides.pop("baseline", None), overrides.pop("loss", None)
+    cfg = replace(base, **overrides)
+    if baseline:
+        cfg = replace(cfg, model=replace(cfg.model, baseline=replace(cfg.model.baseline, **baseline)))
+    if loss:
+        cfg = replace(cfg, model=replace(cfg.model, loss=replace(cfg.model.loss, **loss)))
+    return cfg
+
+
 def evaluate_method(name: str, base: TrainConfig, data: SequenceData, repeat: int, run_dir: Path,
                     progress: bool) -> dict:
     train_idx, valid_idx, test_idx = split_indices(data.labels.numpy(), repeat)
-    overrides = dict(METHODS[name])
-    baseline = overrides.pop("baseline", None)
-    cfg = replace(base, seed=repeat, **overrides)
-    if baseline:
-        cfg = replace(cfg, model=replace(cfg.model, baseline=replace(cfg.model.baseline, **baseline)))
+    cfg = method_config(name, replace(base, seed=repeat))
     started = time.perf_counter()
     result = train_model(cfg, data.subset(train_idx), data.subset(valid_idx), checkpoint_dir=run_dir / "checkpoint",
                          progress=progress)
@@ -161,7 +185,7 @@ def summary_table(rows: list[dict], methods: list[str]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m firp.evaluate", description=__doc__,
+    parser = argparse.ArgumentParser(prog="firp evaluate", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_training_flags(parser)
     parser.add_argument("--repeats", type=int_in_range("--repeats", 1, 100), default=5)
@@ -170,36 +194,30 @@ def main(argv: list[str] | None = None) -> int:
                         help="train only these repeat indices (e.g. one process per core or machine, same --out); "
                              "the summary still covers every finished (repeat, method) of the first --repeats")
     parser.add_argument("--out", type=Path, default=None, help="results directory (default runs/eval-<data stem>)")
-    parser.add_argument("--lambda", dest="overshooting", type=non_negative_float("--lambda"),
-                        default=TrainConfig.overshooting, help="latent-overshooting weight of the FIRP methods")
-    parser.add_argument("--prediction-weight", type=non_negative_float("--prediction-weight"), default=1.0,
-                        help="weight of FIRP's one-step prediction terms L_KL^1 + L_re^1 (paper: 1)")
     add_model_flags(parser)
+    add_loss_flags(parser)
     args = parser.parse_args(argv)
     check_data_flag(parser, args)
-    if not args.plan_geometry and any(m in NEEDS_GEOMETRY for m in args.methods):
+    base, overrides = recipe_from(args)
+    if not base.model.geometry.enabled and any(m in NEEDS_GEOMETRY for m in args.methods):
         parser.error(f"--methods: {', '.join(m for m in args.methods if m in NEEDS_GEOMETRY)} reads the plan's "
-                     "grasp-frame description: add --plan-geometry")
+                     "grasp-frame description, which this recipe leaves out: drop --no-plan-geometry")
     if args.only_repeats is not None and max(args.only_repeats) >= args.repeats:
         parser.error(f"--only-repeats: every index must be < --repeats ({args.repeats}), got {args.only_repeats}")
     out = args.out or Path("runs") / f"eval-{args.data.stem}"
     out.mkdir(parents=True, exist_ok=True)
-    model = model_config_from(args, args.image_size)
-    model = replace(model, loss=replace(model.loss, prediction=args.prediction_weight))
-    base = TrainConfig(epochs=args.epochs, threads=args.threads, patience=args.patience, min_epochs=args.min_epochs,
-                       overshooting=args.overshooting, model=model)
     torch.set_num_threads(args.threads)
     data = load_sequences(args.data, base.model.encoder, args.cache_dir, progress=not args.no_progress)
     rows = []
     for repeat in range(args.repeats):
         for name in args.methods:
-            path = out / f"r{repeat}-{name}.json"
+            path = out / f"{run_name(repeat, name)}.json"
             if path.exists():
                 rows.append(json.loads(path.read_text()))
                 continue
             if args.only_repeats is not None and repeat not in args.only_repeats:
                 continue
-            row = evaluate_method(name, base, data, repeat, out / f"r{repeat}-{name}", not args.no_progress)
+            row = evaluate_method(name, base, data, repeat, out / run_name(repeat, name), not args.no_progress)
             path.write_text(json.dumps(row, indent=1))
             rows.append(row)
             print(f"repeat {repeat} {name}: test balanced accuracy {row['test_balanced_accuracy']:.3f} "
@@ -210,13 +228,11 @@ def main(argv: list[str] | None = None) -> int:
     table = f"{table}\n\n{ENSEMBLE}: mean score of the FIRP variants of each repeat ({', '.join(FIRP_VARIANTS)}).\n" \
             f"{bar}" if any(r["method"] == ENSEMBLE for r in rows) else f"{table}\n\n{bar}"
     print(table)
-    command = f"python -m firp.evaluate --data {args.data} --repeats {args.repeats} --methods {' '.join(args.methods)} " \
-              f"--epochs {args.epochs} --threads {args.threads} --head-temperature {args.head_temperature} " \
-              f"--action-chunk {args.action_chunk} --deter-dim {args.deter_dim} --hidden {args.hidden} " \
-              f"--patience {args.patience} --min-epochs {args.min_epochs} --lambda {args.overshooting} --prediction-weight {args.prediction_weight}" \
-              + (" --plan-geometry" if args.plan_geometry else "")
+    command = f"firp evaluate --data {args.data} --repeats {args.repeats} --methods {' '.join(args.methods)} " \
+              f"{recipe_flags(args.preset, overrides)} --threads {args.threads}"
     (out / "results.json").write_text(json.dumps({
-        "command": command, "dataset": str(args.data), "dataset_hash": data.dataset_hash,
+        "command": command, "preset": args.preset, "overrides": overrides, "dataset": str(args.data),
+        "dataset_hash": data.dataset_hash,
         "machine": {"python": platform.python_version(), "torch": torch.__version__, "threads": args.threads},
         "rows": rows, "not_run": NOT_RUN}, indent=1))
     (out / "results.md").write_text(f"# Evaluation on {args.data}\n\n`{command}`\n\n{table}\n")

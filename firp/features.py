@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from firp.episodes import EpisodeDataset
+from firp.core.episodes import EpisodeDataset
 from firp.model.config import EncoderConfig
 from firp.model.encoder import ImageEncoder
 

@@ -32,15 +32,18 @@ from firp.model.rssm import sample_overshooting_distances
 FUTURE_TERMS = ("ce_open_loop", "kl", "re", "kl_overshoot", "re_overshoot")
 
 
+#: Loss weights older configs kept here; they live in ``model.loss`` (LossConfig) alone.
+_MOVED_TO_LOSS = {"overshooting": "overshooting", "alpha": "alpha", "beta": "beta"}
+
+
 @dataclass(frozen=True)
 class TrainConfig:
-    """One training run. The first seven fields are the paper's tuned parameters."""
+    """One training run. ``lr``, ``grad_clip``, ``e_start_f`` and ``e_stop_e`` are four of the paper's
+    seven tuned parameters; the other three (lambda, alpha, beta) are loss weights, so they are
+    ``model.loss.overshooting``, ``.alpha`` and ``.beta``, like every other weight of the objective."""
 
     lr: float = 1e-3
     grad_clip: float = 10.0
-    overshooting: float = 0.1  # lambda
-    alpha: float = 0.01  # TTC weight
-    beta: float = 0.01  # ATC weight
     e_start_f: int = 0  # epoch at which the future-prediction losses start
     e_stop_e: int = 20  # epoch after which the projection producing e_t is frozen
     kind: str = "firp"
@@ -65,8 +68,14 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
+        """Inverse of :meth:`to_dict`; a config written when the loss weights were also fields here
+        reads back with them in ``model.loss``, where they were applied all along."""
         d = dict(d)
-        d["model"] = FIRPConfig.from_dict(d["model"])
+        moved = {loss_key: d.pop(key) for key, loss_key in _MOVED_TO_LOSS.items() if key in d}
+        model = dict(d["model"])
+        if moved:
+            model["loss"] = {**model.get("loss", {}), **moved}
+        d["model"] = FIRPConfig.from_dict(model)
         return cls(**d)
 
 
@@ -77,13 +86,6 @@ class TrainResult:
     best_val_balanced_accuracy: float
     history: list[dict]
     seconds: float
-
-
-def _with_loss_weights(cfg: TrainConfig) -> FIRPConfig:
-    from dataclasses import replace
-
-    return replace(cfg.model, loss=replace(cfg.model.loss, overshooting=cfg.overshooting, alpha=cfg.alpha,
-                                           beta=cfg.beta))
 
 
 @torch.inference_mode()
@@ -107,7 +109,7 @@ def _loss(model: torch.nn.Module, cfg: TrainConfig, feats: torch.Tensor, actions
     future = epoch >= cfg.e_start_f
     transitions = -(-actions.shape[1] // model.cfg.action_chunk)  # RSSM steps: ceil(T / k)
     taus = sample_overshooting_distances(transitions, cfg.overshooting_n, cfg.overshooting_max_tau, gen) \
-        if future and cfg.overshooting > 0 else []
+        if future and model.cfg.loss.overshooting > 0 else []
     out = model.forward_train(feats, actions, overshooting_distances=taus, overshooting_stride=cfg.overshooting_stride)
     terms = firp_loss(out, actions, labels, model.cfg.loss)
     total = terms["total"]
@@ -129,8 +131,7 @@ def train_model(cfg: TrainConfig, train: SequenceData, valid: SequenceData, chec
     """Train ``cfg.kind`` on ``train``; select the epoch by validation balanced accuracy; resumable."""
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
-    model_cfg = _with_loss_weights(cfg)
-    model = build_model(cfg.kind, model_cfg)
+    model = build_model(cfg.kind, cfg.model)
     if hasattr(model, "action_norm"):
         model.action_norm.fit(train.actions)  # training-set statistics, saved with the weights
     if getattr(model, "geometry", None) is not None:

@@ -9,7 +9,7 @@ several machines) and studies resume: finished trials are kept, and a trial's ow
 resumes from its checkpoint. Every trial trains on the same train/validation split.
 
     python -m firp.tune --data data/stacking.h5 --trials 20
-    python -m firp.tune --data data/stacking.h5 --export firp/bundles/stacking
+    python -m firp.tune --data data/stacking.h5 --export models/stacking
 """
 
 from __future__ import annotations
@@ -27,8 +27,10 @@ import torch
 from safetensors.torch import load_file
 
 from firp.bundle import BundleMember, export_bundle
-from firp.cli import add_model_flags, add_training_flags, check_data_flag, int_in_range, model_config_from
-from firp.contract import PlanLimits
+from firp.core.cli_types import int_in_range
+from firp.flags import add_model_flags, add_training_flags, check_data_flag, recipe_from
+from firp.presets import preset
+from firp.core.contract import PlanLimits
 from firp.data import SequenceData, load_sequences, stratified_split
 from firp.metrics import balanced_accuracy, choose_threshold, expected_calibration_error, reliability_diagram
 from firp.model.baselines import build_model
@@ -62,19 +64,17 @@ def suggest_config(trial: optuna.Trial, base: TrainConfig, space: str = "paper")
     """A training config from a grid of :data:`SPACES` (categorical, so every value is a grid point)."""
     e = base.epochs
     grid = SPACES[space]
-    return replace(
-        base,
-        lr=trial.suggest_categorical("lr", grid["lr"]),
-        grad_clip=trial.suggest_categorical("grad_clip", grid["grad_clip"]),
-        overshooting=trial.suggest_categorical("lambda", grid["lambda"]),
-        alpha=trial.suggest_categorical("alpha", grid["alpha"]),
-        beta=trial.suggest_categorical("beta", grid["beta"]),
-        e_start_f=int(round(trial.suggest_categorical("e_start_f_fraction", grid["e_start_f_fraction"]) * e)),
-        e_stop_e=int(round(trial.suggest_categorical("e_stop_e_fraction", grid["e_stop_e_fraction"]) * e)),
-        seed=trial.number,
-        model=replace(base.model, loss=replace(base.model.loss, prediction=trial.suggest_categorical(
-            "prediction", grid["prediction"]))) if "prediction" in grid else base.model,
-    )
+    lr = trial.suggest_categorical("lr", grid["lr"])
+    grad_clip = trial.suggest_categorical("grad_clip", grid["grad_clip"])
+    weights = {"overshooting": trial.suggest_categorical("lambda", grid["lambda"]),
+               "alpha": trial.suggest_categorical("alpha", grid["alpha"]),
+               "beta": trial.suggest_categorical("beta", grid["beta"])}
+    e_start_f = int(round(trial.suggest_categorical("e_start_f_fraction", grid["e_start_f_fraction"]) * e))
+    e_stop_e = int(round(trial.suggest_categorical("e_stop_e_fraction", grid["e_stop_e_fraction"]) * e))
+    if "prediction" in grid:
+        weights["prediction"] = trial.suggest_categorical("prediction", grid["prediction"])
+    return replace(base, lr=lr, grad_clip=grad_clip, e_start_f=e_start_f, e_stop_e=e_stop_e, seed=trial.number,
+                   model=replace(base.model, loss=replace(base.model.loss, **weights)))
 
 
 VALID_FRACTION = 0.2
@@ -87,11 +87,16 @@ def tuning_split(labels: np.ndarray, seed: int = SPLIT_SEED) -> tuple[np.ndarray
 
 
 def run_study(data: SequenceData, base: TrainConfig, storage: str, study_name: str, trials: int, run_dir: Path,
-              progress: bool = True, space: str = "paper") -> optuna.Study:
-    """Run trials until the study holds ``trials`` finished ones (a resumed study counts its old ones)."""
+              progress: bool = True, space: str = "paper", recipe: dict | None = None) -> optuna.Study:
+    """Run trials until the study holds ``trials`` finished ones (a resumed study counts its old ones).
+
+    ``recipe`` (``{"preset": name, "overrides": {...}}``) is kept with the study, so that the bundle it
+    exports can say what it was made from."""
     study = optuna.create_study(study_name=study_name, storage=storage, direction="maximize", load_if_exists=True,
                                 sampler=optuna.samplers.TPESampler(seed=0))
     study.set_user_attr("dataset_hash", data.dataset_hash)
+    if recipe is not None:
+        study.set_user_attr("recipe", recipe)
     study.set_user_attr("search_space", space)
     study.set_user_attr("search_space_note", "paper grid; lr adds 3e-4, 1e-3; epochs as fractions of --epochs"
                         if space == "paper" else f"product grid {SPACES[space]}")
@@ -126,8 +131,7 @@ def top_trials(study: optuna.Study, k: int = TOP_K) -> list[optuna.trial.FrozenT
 
 def load_trial_model(trial: optuna.trial.FrozenTrial) -> tuple[TrainConfig, torch.nn.Module]:
     cfg = TrainConfig.from_dict(trial.user_attrs["config"])
-    model = build_model(cfg.kind, replace(cfg.model, loss=replace(cfg.model.loss, overshooting=cfg.overshooting,
-                                                                  alpha=cfg.alpha, beta=cfg.beta)))
+    model = build_model(cfg.kind, cfg.model)
     model.load_state_dict(load_file(Path(trial.user_attrs["checkpoint"]) / "best.safetensors"))
     return cfg, model.eval()
 
@@ -163,6 +167,7 @@ def export_top_ensemble(study: optuna.Study, data: SequenceData, dataset_path: P
         training_data_hash=data.dataset_hash, training_data_path=str(dataset_path),
         t_range=PlanLimits(data.actions.shape[1], data.actions.shape[1]), overwrite=True,
         extra={"study": study.study_name, "trials": [t.number for t in chosen],
+               "recipe": study.user_attrs.get("recipe"),
                # the episodes the threshold, the metrics and the ECE above were computed on
                "validation_split": {"fraction": VALID_FRACTION, "seed": SPLIT_SEED,
                                     "episodes": [data.demo_names[i] for i in valid_idx.tolist()]}},
@@ -188,7 +193,7 @@ def study_table(study: optuna.Study) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m firp.tune", description=__doc__,
+    parser = argparse.ArgumentParser(prog="firp tune", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_training_flags(parser)
     parser.add_argument("--trials", type=int_in_range("--trials", 0, 10_000), default=20)
@@ -199,34 +204,34 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--report", type=Path, default=None, help="also write the study's trials as a Markdown table")
     parser.add_argument("--reliability", type=Path, default=None,
                         help="with --export: the reliability diagram PNG (default runs/<study>_reliability.png)")
-    parser.add_argument("--space", choices=sorted(SPACES), default="product",
-                        help="search space: the paper's grid or the narrowed product grid (default)")
+    parser.add_argument("--space", choices=sorted(SPACES), default=None,
+                        help="search space: the paper's grid or the narrowed product grid (default: the preset's)")
     add_model_flags(parser)
     args = parser.parse_args(argv)
     check_data_flag(parser, args)
+    base, overrides = recipe_from(args)
+    space = args.space or preset(args.preset).space
     runs = Path("runs")
     runs.mkdir(exist_ok=True)
     storage = args.storage or f"sqlite:///{runs / ('tune-' + args.data.stem + '.db')}"
     study_name = args.study or f"firp-{args.data.stem}"
     torch.set_num_threads(args.threads)
-    base = TrainConfig(epochs=args.epochs, threads=args.threads, patience=args.patience, min_epochs=args.min_epochs,
-                       model=model_config_from(args, args.image_size))
     data = load_sequences(args.data, base.model.encoder, args.cache_dir, progress=not args.no_progress)
     started = time.perf_counter()
     study = run_study(data, base, storage, study_name, args.trials, runs / f"tune-{study_name}",
-                      progress=not args.no_progress, space=args.space)
+                      progress=not args.no_progress, space=space, recipe={"preset": args.preset, "overrides": overrides})
     best = top_trials(study)
     print(f"{len(study.trials)} trials in {storage} ({time.perf_counter() - started:.0f} s this call); best:")
     for t in best:
         print(f"  trial {t.number}: validation balanced accuracy {t.value:.3f}  {json.dumps(t.params)}")
     if args.report:
         args.report.parent.mkdir(parents=True, exist_ok=True)
-        command = "python -m firp.tune " + " ".join(argv if argv is not None else sys.argv[1:])
+        command = "firp tune " + " ".join(argv if argv is not None else sys.argv[1:])
         args.report.write_text(f"# Optuna study `{study_name}` on {args.data}\n\n`{command}`\n\n"
-                               f"Search space `{args.space}`: {SPACES[args.space]}\n\n{study_table(study)}\n")
+                               f"Search space `{space}`: {SPACES[space]}\n\n{study_table(study)}\n")
         print(f"wrote {args.report}")
     if args.export:
-        from firp.episodes import EpisodeDataset
+        from firp.core.episodes import EpisodeDataset
 
         with EpisodeDataset(args.data) as ds:
             task = args.task or str(ds.attrs.get("task", args.data.stem))

@@ -1,37 +1,53 @@
-"""``python -m planner_client run --trials 50``: the product's main job.
+"""``python -m planner_client run --trials 50`` (the product's main job) and ``... collect`` (datasets).
 
-Per trial: a new episode; the TAMP planner's plan is scored by the FIRP scoring service and the
-planner replans with the next block order while the score is below the threshold, up to
+**run** -- per trial: a new episode; the TAMP planner's plan is scored by the FIRP scoring service
+and the planner replans with the next block order while the score is below the threshold, up to
 --max-iterations plans; the accepted (or last) plan is executed in the simulator. TAMP alone (the
 first plan, unscored) and the oracle line (the first block order that succeeds in simulation) run
 on the same episodes. At the end: the success-rate tables, also written beside --out as
-<out>.summary.md / .summary.json / .summary.png.
+<out>.summary.md / .summary.json / .summary.png. With no --sim / --service (nor
+FIRP_PLANNER_SIM_URL / FIRP_PLANNER_SERVICE_URL), both services are launched on loopback for the
+run (logs in <out dir>/logs/); the service loads --bundle or the task's shipped bundle.
 
-With no --service / --sim, both services are launched on loopback for the run (logs in
-<out dir>/logs/); the service loads --bundle or the bundle shipped for the task.
+**collect** -- labelled episodes for training: per episode a seeded scene and block order, the
+planner's plan, its execution with one frame per step, the label; written crash-safe into a
+robomimic-style HDF5 file, resumable, in worker processes.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
 from pathlib import Path
 
-from firp.cli import int_in_range, non_negative_float
-from firp.contract import DEFAULT_T, T_MAX, T_MIN
+from firp.core.cli_types import int_in_range, non_negative_float
+from firp.core.contract import DEFAULT_T, T_MAX, T_MIN
 
 EXIT_USAGE, EXIT_SERVICE, EXIT_INTERRUPTED = 2, 3, 130
+#: the tasks of our MuJoCo world (sim_worker.tasks.TASK_NAMES; not imported here, which would load MuJoCo)
+TASKS = ("stacking", "replacement")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m planner_client", description=__doc__,
+def build_parser(prog: str = "python -m planner_client") -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
-    run = sub.add_parser("run", help="run planning trials end to end")
+    add_run_parser(sub)
+    add_collect_parser(sub)
+    return parser
+
+
+def add_run_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """The ``run`` subcommand's flags (defaults of the service URLs etc. from :class:`PlannerSettings`)."""
+    from planner_client.settings import PlannerSettings
+
+    settings = PlannerSettings()
+    run = sub.add_parser("run", help="run planning trials end to end (the main job)")
     run.add_argument("--trials", type=int_in_range("--trials", 1, 100_000), default=50)
-    run.add_argument("--task", choices=("stacking", "replacement"), default="stacking")
+    run.add_argument("--task", choices=TASKS, default="stacking")
     run.add_argument("--seed", type=int, default=100_000, help="trial i uses scene seed SEED + i")
     run.add_argument("--max-iterations", type=int_in_range("--max-iterations", 1, 6), default=6,
                      help="plans scored per trial at most, one per block order (the replanning budget; also the "
@@ -46,17 +62,52 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", type=Path, default=None,
                      help="JSONL of trial records (default: a new runs/<task>-<time>.jsonl)")
     run.add_argument("--resume", action="store_true", help="continue an interrupted run in --out (same settings)")
-    run.add_argument("--sim", default=os.environ.get("FIRP_PLANNER_SIM_URL") or None, metavar="URL",
+    run.add_argument("--sim", default=settings.sim_url, metavar="URL",
                      help="running sim worker (env FIRP_PLANNER_SIM_URL); default: launch one for the run")
-    run.add_argument("--service", default=os.environ.get("FIRP_PLANNER_SERVICE_URL") or None, metavar="URL",
+    run.add_argument("--service", default=settings.service_url, metavar="URL",
                      help="running scoring service (env FIRP_PLANNER_SERVICE_URL); default: launch one for the run")
     run.add_argument("--bundle", type=Path, default=None,
-                     help="bundle the launched service loads (default: firp/bundles/<task> in the firp package)")
-    run.add_argument("--api-key", default=os.environ.get("FIRP_PLANNER_API_KEY") or None,
+                     help="bundle the launched service loads (default: the shipped bundle, models/<task>)")
+    run.add_argument("--api-key", default=settings.api_key.get_secret_value() if settings.api_key else None,
                      help="X-API-Key for the scoring service (env FIRP_PLANNER_API_KEY)")
-    run.add_argument("--ready-timeout", type=int_in_range("--ready-timeout", 1, 3600), default=120,
-                     help="seconds to wait for the services to be ready")
-    return parser
+    run.add_argument("--ready-timeout", type=int_in_range("--ready-timeout", 1, 3600), default=settings.ready_timeout,
+                     help="seconds to wait for the services to be ready (env FIRP_PLANNER_READY_TIMEOUT)")
+    return run
+
+
+def add_collect_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """The ``collect`` subcommand's flags."""
+    c = sub.add_parser("collect", help="simulate labelled episodes into a robomimic-style HDF5 file (resumable)")
+    c.add_argument("--task", required=True, choices=TASKS)
+    c.add_argument("--episodes", required=True, type=int_in_range("--episodes", 1, 1_000_000))
+    c.add_argument("--out", required=True, type=Path, help="HDF5 file to write (parts kept beside it until done)")
+    c.add_argument("--workers", type=int_in_range("--workers", 1, 256), default=max(1, os.cpu_count() or 1))
+    c.add_argument("--seed-offset", type=int_in_range("--seed-offset", 0, 2**31 - 1), default=0,
+                   help="episode i uses scene seed seed_offset + i")
+    c.add_argument("--horizon", "-T", type=int_in_range("--horizon", T_MIN, T_MAX), default=DEFAULT_T,
+                   help="plan length in steps at 4 FPS")
+    c.add_argument("--image-size", type=int_in_range("--image-size", 16, 512), default=84)
+    c.add_argument("--pose-error-mm", type=non_negative_float("--pose-error-mm"), default=3.0,
+                   help="std of the planner's block position estimate error in the plane (0 = exact)")
+    c.add_argument("--pose-error-deg", type=non_negative_float("--pose-error-deg"), default=3.0,
+                   help="std of the planner's block yaw estimate error (0 = exact)")
+    c.add_argument("--no-progress", action="store_true")
+    return c
+
+
+def collect_command(args: argparse.Namespace) -> int:
+    from planner_client.collect import CollectConfig, collect
+    from sim_worker.perception import PoseErrorConfig
+
+    error = PoseErrorConfig.from_mm_deg(args.pose_error_mm, args.pose_error_deg)
+    config = CollectConfig(task=args.task, episodes=args.episodes, out=args.out, workers=args.workers,
+                           seed_offset=args.seed_offset, horizon=args.horizon, image_size=args.image_size,
+                           pose_error=error)
+    balance = collect(config, progress=not args.no_progress)
+    print(f"{args.out}: {balance['total']} episodes, {balance['success']} success / {balance['failure']} failure "
+          f"(success rate {balance['success_rate']:.3f}); {balance['new_episodes']} new in {balance['seconds']} s")
+    print(json.dumps(balance))
+    return 0
 
 
 def _postfix(records: list[dict]) -> dict[str, str]:
@@ -73,18 +124,24 @@ def _postfix(records: list[dict]) -> dict[str, str]:
     return post
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+def main(argv: list[str] | None = None, prog: str = "python -m planner_client") -> int:
+    parser = build_parser(prog)
     args = parser.parse_args(argv)
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    if args.command == "collect":
+        return collect_command(args)
+    return run_command(args, parser)
+
+
+def run_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     if args.resume and args.out is None:
         parser.error("--resume needs --out: the run file to continue")
     if args.bundle is not None and args.service and not args.no_score:
         parser.error("--bundle is for the scoring service this run launches; with --service the running service "
                      "has loaded its own bundle")
-    os.environ.setdefault("MUJOCO_GL", "egl")
     from tqdm import tqdm
 
-    from planner_client.bundles import MissingBundle
+    from firp.core.bundle_format import MissingBundle
     from planner_client.loop import RunConfig, RunSetupError, check_resumable, read_records, run_identity, run_trials
     from planner_client.processes import ServerStartError
     from planner_client.report import markdown, summarise, write_report

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from firp.contract import validate_plan
+from firp.core.contract import validate_plan
 from planner_client.transport import JsonHttp, RequestRejected, RetryPolicy, ServiceError
 
 SCORE_FIELDS = ("score", "success", "threshold", "member_scores", "spread", "failure_step", "model", "elapsed_ms")

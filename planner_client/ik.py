@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from firp.contract import JOINT_LOWER, JOINT_UPPER
+from firp.core.contract import JOINT_LOWER, JOINT_UPPER
 from sim_worker.robot import HOME_ARM_QPOS, PandaIndices, panda_spec
 
 

@@ -24,7 +24,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Protocol
+from typing import Any, Iterator, Protocol, Sequence
 
 import numpy as np
 
@@ -147,6 +147,21 @@ class TrialWork:
         return self.outcomes[order]
 
 
+def accepts(score: float, threshold: float) -> bool:
+    """The paper's acceptance rule: a plan is executed when its score reaches the threshold."""
+    return score >= threshold
+
+
+def chosen_candidate(scores: Sequence[float], threshold: float) -> int:
+    """Which of the plans scored in the loop's order the loop executes: the first one :func:`accepts`
+    takes, else the last one scored (the paper's rule when the budget runs out). The replays of the
+    loop on recorded candidates (``experiments.replan_threshold``) call this, so there is one rule."""
+    for index, score in enumerate(scores):
+        if accepts(score, threshold):
+            return index
+    return len(scores) - 1
+
+
 def replan_until_accepted(work: TrialWork, scorer: Scorer, orders: list[tuple[str, ...]],
                           threshold: float | None) -> dict:
     """Score plans in ``orders`` until one reaches the threshold; the FIRP part of the record."""
@@ -162,7 +177,7 @@ def replan_until_accepted(work: TrialWork, scorer: Scorer, orders: list[tuple[st
         work.timing["score_s"] += time.perf_counter() - started
         used_threshold = float(answer["threshold"]) if threshold is None else threshold
         scores.append(float(answer["score"]))
-        if scores[-1] >= used_threshold:
+        if accepts(scores[-1], used_threshold):
             accepted = True
             break
     outcome = work.execute(order)  # the accepted plan, or the last one when the budget ran out

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
-from planner_client.bundles import require_bundle, shipped_bundle_dir
+from firp.core.bundle_format import require_bundle, shipped_bundle_dir
 from planner_client.clients import ScoreClient, SimClient
 from planner_client.launcher import Launcher
 from planner_client.loop import Scorer
@@ -35,7 +35,7 @@ class ServicePlan:
 
     def bundle_to_launch(self) -> Path | None:
         """The bundle the launched service loads, checked to exist; None if no service is launched.
-        Raises :class:`planner_client.bundles.MissingBundle` before anything starts."""
+        Raises :class:`firp.core.bundle_format.MissingBundle` before anything starts."""
         if not self.score or self.service_url is not None:
             return None
         return require_bundle(self.bundle or shipped_bundle_dir(self.task), self.task)

@@ -18,7 +18,7 @@ from itertools import permutations
 
 import numpy as np
 
-from firp.contract import CATEGORY_INDEX, DEFAULT_T, FINGER_CLOSED, FINGER_OPEN, FPS, make_plan
+from firp.core.contract import CATEGORY_INDEX, DEFAULT_T, FINGER_CLOSED, FINGER_OPEN, FPS, make_plan
 from planner_client.ik import IKConfig, PandaIK, rotation_yaw
 from sim_worker.robot import HOME_ARM_QPOS
 

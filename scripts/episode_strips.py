@@ -18,7 +18,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np  # noqa: E402
 from PIL import Image, ImageDraw  # noqa: E402
 
-from firp.contract import CATEGORIES, split_plan  # noqa: E402
+from firp.core.contract import CATEGORIES, split_plan  # noqa: E402
 from planner_client.tamp import TampPlanner  # noqa: E402
 from sim_worker.executor import execute_plan  # noqa: E402
 from sim_worker.perception import observation  # noqa: E402

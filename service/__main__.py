@@ -24,9 +24,9 @@ from service.settings import ServiceSettings
 __all__ = ["main", "parse_args"]
 
 
-def parse_args(argv: list[str] | None = None) -> dict[str, object]:
+def parse_args(argv: list[str] | None = None, prog: str = "python -m service") -> dict[str, object]:
     """Only the flags that were given, as settings fields (so the environment fills the rest)."""
-    ap = argparse.ArgumentParser(prog="python -m service", description="FIRP plan scoring service (FastAPI/uvicorn)")
+    ap = argparse.ArgumentParser(prog=prog, description="FIRP plan scoring service (FastAPI/uvicorn)")
     ap.add_argument("--host", help="interface to bind (default 127.0.0.1; env FIRP_SERVICE_HOST)")
     ap.add_argument("--port", type=int, help="port (default 8001; env FIRP_SERVICE_PORT)")
     ap.add_argument("--bundle", type=Path, help="bundle directory (default: the shipped bundle of --task; "
@@ -41,12 +41,12 @@ def parse_args(argv: list[str] | None = None) -> dict[str, object]:
     return {k: v for k, v in args.items() if v is not None}
 
 
-def main(argv: list[str] | None = None) -> int:
-    overrides = parse_args(argv)
+def main(argv: list[str] | None = None, prog: str = "python -m service") -> int:
+    overrides = parse_args(argv, prog)
     try:
         settings = ServiceSettings(**overrides)
     except ValidationError as exc:
-        print(f"python -m service: invalid settings:\n{exc}", file=sys.stderr)
+        print(f"{prog}: invalid settings:\n{exc}", file=sys.stderr)
         return 2
     import uvicorn  # after the settings are known to be good: a typo should not wait for torch
 

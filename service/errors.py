@@ -1,9 +1,9 @@
-"""The scoring service's errors: the one shape of :mod:`firp.http_errors` (shared with the sim
+"""The scoring service's errors: the one shape of :mod:`firp.core.http_errors` (shared with the sim
 worker), plus the OpenAPI entries that document it for the service's routes.
 
     {"error": {"field": "plan[3][7]", "rule": "one_hot", "message": "..."}}
 
-``ServiceError`` is the shared :class:`~firp.http_errors.ApiError` under the name the service's
+``ServiceError`` is the shared :class:`~firp.core.http_errors.ApiError` under the name the service's
 modules use; every error response records its rule in the ASGI scope (``SCOPE_RULE``) for
 :mod:`service.metrics`.
 """
@@ -14,9 +14,9 @@ import logging
 
 from fastapi import FastAPI
 
-from firp import http_errors
-from firp.http_errors import SCOPE_RULE, error_content, error_response, field_from_loc
-from firp.http_errors import ApiError as ServiceError
+from firp.core import http_errors
+from firp.core.http_errors import SCOPE_RULE, error_content, error_response, field_from_loc
+from firp.core.http_errors import ApiError as ServiceError
 from service.schemas import ErrorResponse
 
 __all__ = [

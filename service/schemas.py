@@ -1,7 +1,7 @@
 """Request and response bodies (pydantic v2): the service's public contract, and its OpenAPI schema.
 
 Why the plan is only *typed* here and not fully checked: the contract's rules (width 16, T range,
-finiteness, one-hot, joint limits) live in exactly one place, :func:`firp.contract.validate_plan`,
+finiteness, one-hot, joint limits) live in exactly one place, :func:`firp.core.contract.validate_plan`,
 which names the rule and the offending ``plan[t][c]``. The JSON schema still *documents* the
 T x 16 shape (``minItems``/``maxItems``), so clients and schema-driven tools see it. Numbers are
 strict: ``"0.5"`` and ``true`` are not numbers (pydantic would otherwise coerce them).
@@ -16,7 +16,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, Strict
 
-from firp.contract import CATEGORIES, JOINT_NAMES, N_CATEGORIES, PLAN_WIDTH, T_MAX, T_MIN
+from firp.core.contract import CATEGORIES, JOINT_NAMES, N_CATEGORIES, PLAN_WIDTH, T_MAX, T_MIN
 
 __all__ = [
     "BatchScoreRequest",
@@ -53,7 +53,7 @@ _PLAN_DESCRIPTION = (
     f"{N_CATEGORIES}-{PLAN_WIDTH - 1} are the Franka Panda joint targets {', '.join(JOINT_NAMES)} (radians for "
     f"the seven arm joints, metres for the two fingers), inside the Panda's joint limits. The contract allows "
     f"T in [{T_MIN}, {T_MAX}]; a bundle accepts the narrower range it was trained on (GET /v1/model, "
-    "contract.t_min/t_max). Checked by firp.contract.validate_plan: a violation is a 422 naming "
+    "contract.t_min/t_max). Checked by firp.core.contract.validate_plan: a violation is a 422 naming "
     "plan[t] or plan[t][c] and the rule (shape, width, length, finite, one_hot, joint_limits)."
 )
 

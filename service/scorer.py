@@ -37,8 +37,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from firp.bundle import MANIFEST_NAME, Bundle, load_bundle
-from firp.contract import (
+from firp.bundle import Bundle, load_bundle
+from firp.core.bundle_format import MANIFEST_NAME
+from firp.core.contract import (
     CATEGORIES,
     CATEGORY_INDEX,
     CONTRACT_VERSION,
@@ -240,7 +241,7 @@ class ServiceModel:
 
     def validate_plans(self, plans: Sequence[object], fields: Sequence[str]) -> list[np.ndarray]:
         """Each plan through the contract's one validator with the bundle's T range; the
-        :class:`~firp.contract.PlanValidationError` names ``fields[i]`` and the step/column."""
+        :class:`~firp.core.contract.PlanValidationError` names ``fields[i]`` and the step/column."""
         # The validator sums rows: for 1e308-sized numbers numpy warns about overflow, which a
         # warnings filter set to "error" would turn into a 500. The values are refused anyway.
         with np.errstate(over="ignore", invalid="ignore"):

@@ -14,24 +14,14 @@ from pathlib import Path
 from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-__all__ = ["DEFAULT_TASK", "ServiceSettings", "default_bundle_dir"]
+from firp.core.bundle_format import shipped_bundle_dir
+
+__all__ = ["DEFAULT_TASK", "ServiceSettings"]
 
 #: The task whose shipped bundle is loaded when neither a bundle nor a task is configured.
 DEFAULT_TASK = "stacking"
 
 MIB = 1 << 20
-
-
-def default_bundle_dir(task: str) -> Path:
-    """Where the bundle shipped inside the ``firp`` package for ``task`` lives.
-
-    Resolved relative to the installed package (not the working directory), so that an installed
-    service finds its bundle wherever it is started from. ``import firp`` is cheap: the package's
-    ``__init__`` imports nothing.
-    """
-    import firp
-
-    return Path(firp.__file__).parent / "bundles" / task
 
 
 class ServiceSettings(BaseSettings):
@@ -74,4 +64,4 @@ class ServiceSettings(BaseSettings):
     @property
     def bundle_dir(self) -> Path:
         """The bundle to load: ``bundle`` if set, else the shipped bundle of ``task``."""
-        return self.bundle if self.bundle is not None else default_bundle_dir(self.task or DEFAULT_TASK)
+        return self.bundle if self.bundle is not None else shipped_bundle_dir(self.task or DEFAULT_TASK)

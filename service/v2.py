@@ -47,7 +47,7 @@ import numpy as np
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse, Response
 
-from firp.contract import PLAN_WIDTH
+from firp.core.contract import PLAN_WIDTH
 from service.deps import (
     check_batch_size,
     image_digest,

@@ -21,7 +21,7 @@ from typing import AsyncIterator, Callable
 import numpy as np
 from fastapi import FastAPI, Request, Response
 
-from firp.contract import JOINT_NAMES, validate_plan
+from firp.core.contract import JOINT_NAMES, validate_plan
 from sim_worker.errors import ApiError, error_response, install_error_handlers
 from sim_worker.perception import PoseErrorConfig
 from sim_worker.runner import SimRunner

@@ -1,4 +1,4 @@
-"""The sim worker's errors: the one shape of :mod:`firp.http_errors`, shared with the scoring
+"""The sim worker's errors: the one shape of :mod:`firp.core.http_errors`, shared with the scoring
 service, so a planner reads errors from both the same way:
 
     {"error": {"field": "episode_id", "rule": "unknown_episode", "message": "..."}}
@@ -10,8 +10,8 @@ import logging
 
 from fastapi import FastAPI
 
-from firp import http_errors
-from firp.http_errors import ApiError, error_response
+from firp.core import http_errors
+from firp.core.http_errors import ApiError, error_response
 
 __all__ = ["ApiError", "error_response", "install_error_handlers"]
 

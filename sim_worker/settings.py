@@ -14,6 +14,8 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 class SimWorkerSettings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="FIRP_SIM_", extra="ignore", frozen=True)
 
+    host: str = Field("127.0.0.1", description="interface to bind")
+    port: int = Field(8002, ge=0, le=65535, description="port (0: one the OS picks)")
     image_size: int = Field(84, ge=16, le=512, description="camera image height = width, px")
     pose_error_mm: float = Field(3.0, ge=0.0, allow_inf_nan=False,
                                  description="default std of the block position estimates in the plane")

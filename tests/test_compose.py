@@ -53,10 +53,17 @@ def test_services_build_from_the_dockerfiles(compose):
         assert (ROOT / DOCKERFILES[name]).is_file()
 
 
+PORT_VARIABLE = {"service": "FIRP_SERVICE_PORT", "sim_worker": "FIRP_SIM_PORT"}
+
+
+def _port(compose: dict, name: str) -> str:
+    return str(compose["services"][name]["environment"][PORT_VARIABLE[name]])
+
+
 @pytest.mark.parametrize("name", ["service", "sim_worker"])
 def test_servers_are_healthy_only_when_ready(compose, name):
     service = compose["services"][name]
-    port = service["command"][service["command"].index("--port") + 1]
+    port = _port(compose, name)
     test = " ".join(service["healthcheck"]["test"])
     assert service["healthcheck"]["test"][0] == "CMD"
     assert f"http://127.0.0.1:{port}/readyz" in test
@@ -69,13 +76,32 @@ def test_planner_waits_for_healthy_services_and_is_behind_a_profile(compose):
     assert planner["depends_on"] == {"service": {"condition": "service_healthy"},
                                      "sim_worker": {"condition": "service_healthy"}}
     env = planner["environment"]
-    ports = {n: compose["services"][n]["command"][compose["services"][n]["command"].index("--port") + 1]
-             for n in ("service", "sim_worker")}
-    assert env["FIRP_PLANNER_SIM_URL"] == f"http://sim_worker:{ports['sim_worker']}"
-    assert env["FIRP_PLANNER_SERVICE_URL"] == f"http://service:{ports['service']}"
-    # `docker compose run planner run --trials 50`: the image's entry point is the planner CLI
-    assert re.search(r'^ENTRYPOINT \["python", "-m", "planner_client"\]$', _dockerfile("planner"), re.M)
+    assert env["FIRP_PLANNER_SIM_URL"] == f"http://sim_worker:{_port(compose, 'sim_worker')}"
+    assert env["FIRP_PLANNER_SERVICE_URL"] == f"http://service:{_port(compose, 'service')}"
+    # `docker compose run planner run --trials 50`: the image's entry point is the firp command
+    assert re.search(r'^ENTRYPOINT \["firp"\]$', _dockerfile("planner"), re.M)
     assert planner["command"][0] == "run"
+
+
+def test_compose_sets_only_variables_the_settings_read(compose):
+    """One settings scheme: every FIRP_* variable compose sets is a field of that part's pydantic settings."""
+    from planner_client.settings import PlannerSettings
+    from service.settings import ServiceSettings
+    from sim_worker.settings import SimWorkerSettings
+
+    settings = {"service": ServiceSettings, "sim_worker": SimWorkerSettings, "planner": PlannerSettings}
+    for name, cls in settings.items():
+        prefix = cls.model_config["env_prefix"]
+        known = {prefix + field.upper() for field in cls.model_fields}
+        used = {k for k in compose["services"][name].get("environment", {}) if k.startswith("FIRP_")}
+        assert used and used <= known, (name, sorted(used - known))
+    assert "FIRP_SERVICE_BUNDLE" in compose["services"]["service"]["environment"]
+
+
+@pytest.mark.parametrize("name, entry", [("service", '["firp", "serve"]'), ("sim_worker", '["firp", "sim"]')])
+def test_servers_start_as_the_firp_command_configured_by_the_environment(compose, name, entry):
+    assert re.search(rf"^ENTRYPOINT {re.escape(entry)}$", _dockerfile(name), re.M)
+    assert "command" not in compose["services"][name]
 
 
 @pytest.mark.parametrize("name", list(DOCKERFILES))

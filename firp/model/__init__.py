@@ -1,6 +1,6 @@
 """The FIRP model (torch): configs, image encoder, RSSM, success head, FIRP and the baselines.
 
-Imports torch; the numpy-only parts of the method are :mod:`firp.contract` and :mod:`firp.episodes`.
+Imports torch; the numpy-only parts of the method are :mod:`firp.core.contract` and :mod:`firp.core.episodes`.
 Losses are pure functions in :mod:`firp.losses`.
 """
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Literal
 
-from firp.contract import DEFAULT_T, PLAN_WIDTH
+from firp.core.contract import DEFAULT_T, PLAN_WIDTH
 
 Backbone = Literal["efficientnet_lite0", "small_cnn"]
 Normalization = Literal["auto", "inception", "imagenet"]
@@ -174,7 +174,7 @@ class LossConfig:
     ``free_nats`` (0 = off, as in the paper) is dreamer's floor on the per-step KL.
 
     ``ce_real`` and ``prediction`` weight the classification of the real features and the one-step
-    prediction terms (both 1 in the paper); see ``firp.cli.PRODUCT_LOSS`` for what is shipped.
+    prediction terms (both 1 in the paper); see ``firp.flags`` for what is shipped.
 
     ``stop_target_gradient`` (default on) lets the RSSM read the projected features ``e_t`` without
     back-propagating into the projection: the projection is trained by the classification loss on
@@ -187,7 +187,7 @@ class LossConfig:
     ``open_loop_sample`` (default on, as the paper trains on samples) off rolls the training open loop
     on means from the posterior mean of e_1, i.e. exactly the sequence :meth:`FIRP.score` classifies.
     Measured once on stacking (trial 2 of the shipped study's config, seed 2, 40 epochs;
-    ``benchmarks/open_loop_sampling.py`` -> ``docs/results/open_loop_sampling.json``): the open-loop
+    ``experiments/open_loop_sampling.py`` -> ``docs/results/open_loop_sampling.json``): the open-loop
     head left chance ~8 epochs earlier (validation balanced accuracy 0.64 vs 0.51 at epoch 21) but peaked at the same level (0.771 at epoch 37 vs
     0.768 at epoch 32) -- the slow start is not the sampling noise, so the default stays the paper's.
     """

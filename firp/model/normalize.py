@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from firp.contract import N_CATEGORIES
+from firp.core.contract import N_CATEGORIES
 
 
 class ActionNormalizer(nn.Module):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from firp.contract import N_CATEGORIES
+from firp.core.contract import N_CATEGORIES
 
 #: Default smoothing of norms. Vectors much shorter than this have (almost) no direction.
 EPS = 1e-6
@@ -69,7 +69,7 @@ def mlp2(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
 def plan_categories(actions: Tensor) -> Tensor:
     """Category index per step from contract plans ``(..., T, 16)`` -> ``(..., T)`` long.
 
-    The torch twin of :func:`firp.contract.split_plan`'s first output (argmax of the one-hot).
+    The torch twin of :func:`firp.core.contract.split_plan`'s first output (argmax of the one-hot).
     """
     return actions[..., :N_CATEGORIES].argmax(dim=-1)
 

@@ -4,7 +4,7 @@ Why this exists: the stacking outcome is close to a simple function of the scene
 grasp* (which neighbour sits how close to the fingers, how the cubes are turned relative to the
 grasp, how far the tower's target is from its base) -- gradient boosting on such numbers built from
 the planner's estimates reaches 0.84 balanced accuracy where every learned model that reads the
-plan as 120 x 16 joint-space numbers stays near 0.73 (``benchmarks/outcome_predictability.py``).
+plan as 120 x 16 joint-space numbers stays near 0.73 (``experiments/outcome_predictability.py``).
 The plan carries those numbers: at the first step of a "grasp" run the joint targets put the
 tool-centre point (TCP) on the block the planner believes is there, with the fingers at the grasp
 yaw; at the first step of a "release" run, on the place target. Forward kinematics recovers them,
@@ -37,7 +37,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from firp.contract import CATEGORY_INDEX, N_CATEGORIES
+from firp.core.contract import CATEGORY_INDEX, N_CATEGORIES
 from firp.model.config import GeometryConfig
 from firp.model.ops import plan_categories
 

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from firp.bundle import BundleMember, export_bundle
-from firp.contract import JOINT_LOWER, JOINT_UPPER, make_plan
+from firp.core.contract import JOINT_LOWER, JOINT_UPPER, make_plan
 from firp.model import build_model
 from firp.model.encoder import build_backbone
 

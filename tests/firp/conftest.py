@@ -8,8 +8,8 @@ costs a scheduler slice (~8 ms instead of ~0.02 ms), which turns a 5 s test file
 import numpy as np
 import pytest
 
-from firp.contract import make_plan
-from firp.episodes import EpisodeRecord, consolidate, write_episode_part
+from firp.core.contract import make_plan
+from firp.core.episodes import EpisodeRecord, consolidate, write_episode_part
 from tests.torch_fixtures import _one_thread, _seed  # noqa: F401  (autouse fixtures)
 
 TINY_T = 10

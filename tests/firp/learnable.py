@@ -1,6 +1,6 @@
 """Tiny recorded datasets whose label a working pipeline must be able to learn, and controls it must not.
 
-Each is a real HDF5 file in the project's layout, written by :mod:`firp.episodes`. Where the label
+Each is a real HDF5 file in the project's layout, written by :mod:`firp.core.episodes`. Where the label
 shows decides which methods can learn it:
 
 * ``"image"``: a 16 x 16 corner of *every* frame is white for a success and black for a failure.
@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from firp.contract import make_plan
-from firp.episodes import EpisodeRecord, consolidate, write_episode_part
+from firp.core.contract import make_plan
+from firp.core.episodes import EpisodeRecord, consolidate, write_episode_part
 
 T = 16
 SIZE = 32

@@ -21,7 +21,7 @@ from firp.bundle import (
     load_bundle,
     sha256_file,
 )
-from firp.contract import CATEGORIES, CONTRACT_VERSION, PLAN_WIDTH, PlanLimits
+from firp.core.contract import CATEGORIES, CONTRACT_VERSION, PLAN_WIDTH, PlanLimits
 from firp.model import EncoderConfig, FIRPConfig, build_model
 
 from .bundle_helpers import T_RANGE, export_tiny, tiny_backbone, tiny_members

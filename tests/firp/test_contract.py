@@ -11,7 +11,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from firp.contract import (
+from firp.core.contract import (
     CATEGORIES,
     CATEGORY_INDEX,
     DEFAULT_T,

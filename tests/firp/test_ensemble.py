@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from firp.bundle import BundleMember, load_bundle
-from firp.contract import PlanValidationError
+from firp.core.contract import PlanValidationError
 from firp.ensemble import AUTO_VMAP_MAX_N, EnsembleResult, EnsembleScorer, _GRUCellOps
 from firp.model import build_model
 from firp.model.encoder import ImageEncoder

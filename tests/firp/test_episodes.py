@@ -1,4 +1,4 @@
-"""Episode datasets: round trip, resume after interruption, crash safety, split, content hash.
+"""Episode datasets: round trip, resume after interruption, crash safety, content hash.
 
 The data are tiny generated episodes (8x6 pixel frames, 10 steps) so the whole module runs in a
 second or two; what matters is the file-level behaviour, not the size.
@@ -15,9 +15,9 @@ import h5py
 import numpy as np
 import pytest
 
-import firp.episodes as episodes
-from firp.contract import CATEGORIES, CONTRACT_VERSION, JOINT_LOWER, JOINT_UPPER, N_CATEGORIES, PlanValidationError, make_plan
-from firp.episodes import (
+import firp.core.episodes as episodes
+from firp.core.contract import CATEGORIES, CONTRACT_VERSION, JOINT_LOWER, JOINT_UPPER, N_CATEGORIES, PlanValidationError, make_plan
+from firp.core.episodes import (
     EpisodeDataset,
     EpisodeRecord,
     EpisodeValidationError,
@@ -25,9 +25,7 @@ from firp.episodes import (
     completed_part_indices,
     consolidate,
     part_path,
-    read_split,
     write_episode_part,
-    write_split,
 )
 
 T, H, W, S = 10, 6, 8, 5
@@ -286,42 +284,6 @@ def test_mixed_image_sizes_are_refused(tmp_path: Path) -> None:
     with pytest.raises(EpisodeValidationError, match="one image size"):
         consolidate(parts, tmp_path / "ds.hdf5", DATASET_ATTRS)
     assert not (tmp_path / "ds.hdf5").exists()
-
-
-def test_split_is_stratified_disjoint_and_reproducible(tmp_path: Path) -> None:
-    parts, out = tmp_path / "parts", tmp_path / "ds.hdf5"
-    # 12 successes, 8 failures
-    for i in range(20):
-        write_episode_part(parts, i, make_record(i, success=i < 12))
-    consolidate(parts, out, DATASET_ATTRS)
-    split = write_split(out, valid_fraction=0.25, seed=3)
-    train, valid = read_split(out, "train"), read_split(out, "valid")
-    assert (train, valid) == (split["train"], split["valid"])
-    assert not set(train) & set(valid) and sorted(train + valid, key=lambda n: int(n[5:])) == [f"demo_{i}" for i in range(20)]
-    with EpisodeDataset(out) as ds:
-        labels = dict(zip(ds.demo_names, ds.success_labels()))
-        assert ds.split("valid") == valid
-    assert sum(labels[n] for n in valid) == 3 and sum(not labels[n] for n in valid) == 2  # 25% of each class
-    with h5py.File(out, "r") as f:  # robomimic reads masks as byte strings
-        assert f["mask/train"].dtype.kind == "S" and f["mask/valid"][0].decode().startswith("demo_")
-
-    write_split(out, valid_fraction=0.25, seed=3)
-    assert read_split(out, "valid") == valid
-    write_split(out, valid_fraction=0.25, seed=4)
-    assert read_split(out, "valid") != valid
-    with pytest.raises(KeyError, match="no split 'test'"):
-        read_split(out, "test")
-    with pytest.raises(EpisodeValidationError, match="valid_fraction"):
-        write_split(out, valid_fraction=1.0)
-
-
-def test_consolidate_can_write_split_atomically(tmp_path: Path) -> None:
-    parts, out = tmp_path / "parts", tmp_path / "ds.hdf5"
-    write_parts(parts, list(range(6)))
-    result = consolidate(parts, out, DATASET_ATTRS, valid_fraction=0.34, split_seed=0)
-    assert result.split_written
-    valid = read_split(out, "valid")
-    assert len(valid) == 2 and len(read_split(out, "train")) == 4
 
 
 def test_content_hash_stable_and_label_sensitive(tmp_path: Path) -> None:

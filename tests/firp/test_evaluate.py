@@ -34,7 +34,7 @@ def test_protocol_writes_results_and_resumes(tiny_dataset, tmp_path):
     # the ensemble's scores are the members' mean: recompute its balanced accuracy from the rows
     from firp.metrics import balanced_accuracy
     mean = (np.array(singles["firp"]["test_scores"]) + np.array(singles["firp_tcr"]["test_scores"])) / 2
-    from firp.episodes import EpisodeDataset
+    from firp.core.episodes import EpisodeDataset
     with EpisodeDataset(tiny_dataset) as ds:
         y = ds.success_labels()[singles["firp"]["test_index"]].astype(bool)
     assert ens["test_balanced_accuracy"] == pytest.approx(balanced_accuracy(y, mean >= 0.5))
@@ -70,12 +70,36 @@ def test_plan_geometry_protocol_and_the_geometry_only_yardstick(tiny_dataset, tm
     common = ["--data", str(tiny_dataset), "--repeats", "1", "--epochs", "1", "--threads", "1", "--image-size", "32",
               "--out", str(out), "--cache-dir", str(tmp_path / "cache"), "--no-progress"]
     with pytest.raises(SystemExit):
-        main([*common, "--methods", "geometry_mlp"])
-    assert "geometry_mlp reads the plan's grasp-frame description: add --plan-geometry" in capsys.readouterr().err
-    assert main([*common, "--methods", "geometry_mlp", "firp_tcr", "--plan-geometry"]) == 0
+        main([*common, "--methods", "geometry_mlp", "--no-plan-geometry"])
+    assert "geometry_mlp reads the plan's grasp-frame description" in capsys.readouterr().err
+    assert main([*common, "--methods", "geometry_mlp", "firp_tcr"]) == 0  # the product preset reads it
     results = json.loads((out / "results.json").read_text())
-    assert results["command"].endswith("--plan-geometry")
+    assert results["preset"] == "product" and results["overrides"] == {"epochs": 1, "image_size": 32}
+    assert "--preset product --epochs 1 --image-size 32" in results["command"]
     rows = {r["method"]: r for r in results["rows"]}
     assert rows["geometry_mlp"]["config"]["model"]["baseline"]["plan_pooling"] == "none"
     assert rows["firp_tcr"]["config"]["model"]["geometry"]["enabled"] is True
     assert "best non-oracle baseline (geometry_mlp)" in (out / "results.md").read_text()
+
+
+def test_presets_and_flags_make_one_recipe():
+    """A run is its preset plus the flags given; ``paper`` is the dataclass defaults, ``product`` what ships."""
+    import argparse
+
+    from firp.flags import add_loss_flags, add_model_flags, add_training_flags, recipe_flags, recipe_from
+    from firp.model.config import FIRPConfig
+    from firp.presets import PRESETS
+    from firp.train import TrainConfig
+
+    parser = argparse.ArgumentParser()
+    add_training_flags(parser)
+    add_model_flags(parser)
+    add_loss_flags(parser)
+    paper, none = recipe_from(parser.parse_args(["--data", "x", "--preset", "paper", "--threads", "1"]))
+    assert none == {} and paper.model == FIRPConfig() and paper == TrainConfig(threads=1)
+    product, overrides = recipe_from(parser.parse_args(["--data", "x", "--no-plan-geometry", "--epochs", "100",
+                                                        "--lambda", "0.0"]))
+    assert overrides == {"epochs": 100, "plan_geometry": False, "overshooting": 0.0}
+    assert product.epochs == 100 and not product.model.geometry.enabled and product.model.loss.overshooting == 0.0
+    assert product.model.action_chunk == PRESETS["product"].train.model.action_chunk == 8
+    assert recipe_flags("product", overrides) == "--preset product --epochs 100 --no-plan-geometry --lambda 0.0"

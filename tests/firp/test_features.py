@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from firp.episodes import EpisodeDataset, EpisodeRecord, consolidate, write_episode_part
+from firp.core.episodes import EpisodeDataset, EpisodeRecord, consolidate, write_episode_part
 from firp.features import cache_key, cached_features
 from firp.model.config import EncoderConfig
 from firp.model.encoder import ImageEncoder

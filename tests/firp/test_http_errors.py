@@ -1,4 +1,4 @@
-"""The one error shape both HTTP APIs share (firp.http_errors), on a bare FastAPI app."""
+"""The one error shape both HTTP APIs share (firp.core.http_errors), on a bare FastAPI app."""
 
 import logging
 
@@ -7,8 +7,8 @@ import pytest
 from fastapi import FastAPI
 from pydantic import BaseModel
 
-from firp.contract import PlanValidationError
-from firp.http_errors import SCOPE_RULE, ApiError, field_from_loc, install_error_handlers
+from firp.core.contract import PlanValidationError
+from firp.core.http_errors import SCOPE_RULE, ApiError, field_from_loc, install_error_handlers
 
 
 @pytest.mark.parametrize("loc, field", [

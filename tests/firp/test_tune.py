@@ -5,7 +5,7 @@ import optuna
 
 from firp.bundle import load_bundle
 from firp.ensemble import EnsembleScorer
-from firp.episodes import EpisodeDataset
+from firp.core.episodes import EpisodeDataset
 from firp.tune import SPACES, main, top_trials
 
 

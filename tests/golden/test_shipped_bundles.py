@@ -1,4 +1,4 @@
-"""The shipped bundles (``firp/bundles/<task>``) against the figures committed for them.
+"""The shipped bundles (``models/<task>``) against the figures committed for them.
 
 * Scores: the threshold-replay records (``docs/results/replan_threshold_geometry``: every candidate
   of a scene planned, scored by the shipped stacking bundle and executed) are scored again for the
@@ -14,7 +14,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 
 import numpy as np
@@ -22,20 +21,18 @@ import pytest
 import torch
 
 from firp.bundle import load_bundle
-from planner_client.bundles import shipped_bundle_dir
+from experiments import replan_threshold as replan
+from firp.core.bundle_format import shipped_bundle_dir
 from planner_client.loop import read_records
 from planner_client.tamp import TampPlanner, block_orders
 from sim_worker.worlds import TaskWorlds
 
-from .conftest import RESULTS, ROOT, read_json, read_jsonl
+from .conftest import RESULTS, read_json, read_jsonl
 
 RESCORED_TRIALS = {"calibration": 20, "test": 50}  # every trial of the main job's seeds
 EXECUTED_TRIALS = 3  # per split, every candidate
 REPORT = "replan_threshold_stacking_geometry.json"
 
-_SPEC = importlib.util.spec_from_file_location("replan_threshold", ROOT / "benchmarks" / "replan_threshold.py")
-replan = importlib.util.module_from_spec(_SPEC)
-_SPEC.loader.exec_module(replan)
 
 
 def _records(split: str) -> list[dict]:
@@ -45,6 +42,26 @@ def _records(split: str) -> list[dict]:
 def _auc(records: list[dict]) -> float:
     scores, success, model = replan.arrays(records, RESULTS)
     return replan.candidate_metrics(scores, success, model["threshold"])["roc_auc"]
+
+
+#: the flags each shipped bundle was made with, on top of the product preset (see firp.presets)
+SHIPPED_RECIPES = {"stacking": {}, "replacement": {"action_chunk": 4, "plan_geometry": False}}
+
+
+@pytest.mark.parametrize("task", sorted(SHIPPED_RECIPES))
+def test_the_shipped_bundles_are_the_product_preset(task):
+    """What ships is a named recipe, not a list of flags: every member's architecture is the product preset's
+    (the loss weights are what the study tuned)."""
+    import dataclasses
+
+    from firp.model.config import FIRPConfig
+    from firp.presets import PRESETS
+
+    want = PRESETS["product"].with_overrides(**SHIPPED_RECIPES[task]).model
+    manifest = json.loads((shipped_bundle_dir(task) / "manifest.json").read_text())
+    for member in manifest["members"]:
+        got = FIRPConfig.from_dict(member["config"])
+        assert dataclasses.replace(got, loss=want.loss) == want
 
 
 @pytest.mark.parametrize("split", ["calibration", "test"])

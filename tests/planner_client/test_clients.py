@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from firp.contract import PlanValidationError
+from firp.core.contract import PlanValidationError
 from planner_client.backend import SimBackend
 from planner_client.clients import ScoreClient, SimClient
 from planner_client.embedded import EmbeddedSim

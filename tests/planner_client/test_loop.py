@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+from pathlib import Path
 import signal
 import subprocess
 import sys
@@ -375,19 +376,27 @@ def test_cli_names_a_missing_bundle_and_how_to_make_one(tmp_path, capsys):
     assert exit_.value.code == 2
     err = capsys.readouterr().err
     assert str(missing) in err and "does not exist" in err
-    assert "python -m firp.tune --data data/stacking.h5" in err and "--export firp/bundles/stacking" in err
+    assert "firp tune --data data/stacking.h5" in err and "--export models/stacking" in err
     assert not out.parent.exists()  # nothing was launched or written
-    # the shipped defaults are looked up inside the firp package: one per task
-    from planner_client.bundles import shipped_bundle_dir
+
+
+def test_the_shipped_bundles_are_found_in_the_repositorys_models_folder_or_where_the_setting_says(monkeypatch,
+                                                                                                    tmp_path):
+    from firp.core.bundle_format import MODELS_DIR_ENV, shipped_bundle_dir
+
+    monkeypatch.delenv(MODELS_DIR_ENV, raising=False)
+    root = Path(__file__).resolve().parents[2]
     for task in ("stacking", "replacement"):
-        assert shipped_bundle_dir(task).parts[-3:] == ("firp", "bundles", task)
+        assert shipped_bundle_dir(task) == root / "models" / task
         assert (shipped_bundle_dir(task) / "manifest.json").is_file()
+    monkeypatch.setenv(MODELS_DIR_ENV, str(tmp_path))
+    assert shipped_bundle_dir("stacking") == tmp_path / "stacking"
 
 
 def test_the_run_path_never_imports_torch():
     code = ("import sys, planner_client.__main__, planner_client.loop, planner_client.report, "
-            "planner_client.session, planner_client.bundles, matplotlib.figure; "
-            "from planner_client.bundles import shipped_bundle_dir; shipped_bundle_dir('stacking'); "
+            "planner_client.session, matplotlib.figure; "
+            "from firp.core.bundle_format import shipped_bundle_dir; shipped_bundle_dir('stacking'); "
             "print('torch' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"

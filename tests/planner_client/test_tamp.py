@@ -5,7 +5,7 @@ import itertools
 import numpy as np
 import pytest
 
-from firp.contract import CATEGORIES, PICK_PLACE_SEQUENCE, split_plan, validate_plan
+from firp.core.contract import CATEGORIES, PICK_PLACE_SEQUENCE, split_plan, validate_plan
 from planner_client.ik import IKFailure, PandaIK
 from planner_client.tamp import TampPlanner, block_orders
 from sim_worker.perception import PoseErrorConfig, observation
@@ -98,7 +98,7 @@ def test_unreachable_pose_raises_a_clear_error():
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_the_plan_alone_carries_its_grasp_frames(planner, seed):
     """Forward kinematics of the plan's joint targets recovers where each block was estimated to be and
-    the grasp's finger-axis yaw (what benchmarks/outcome_predictability.py's ``grasp_frame_plan``
+    the grasp's finger-axis yaw (what experiments/outcome_predictability.py's ``grasp_frame_plan``
     description uses), and the first release recovers the tower's base estimate."""
     from planner_client.ik import rotation_yaw
 

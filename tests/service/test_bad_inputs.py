@@ -94,7 +94,7 @@ CASES = [
     ("image over max_image_bytes", "/v1/score", score(image=png_b64(100)), 413, "image", "max_bytes",
      "larger than 16384 bytes"),
     ("image not a string", "/v1/score", score(image=[1, 2, 3]), 422, "image", "string_type", "valid string"),
-    # --- the plan (contract rules from firp.contract.validate_plan)
+    # --- the plan (contract rules from firp.core.contract.validate_plan)
     ("plan width 15", "/v1/score", score(plan=[row[:15] for row in plan_list(10)]), 422, "plan", "width",
      "16 numbers"),
     ("T above the bundle's range", "/v1/score", score(plan=plan_list(17)), 422, "plan", "length",

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from firp.contract import validate_plan
+from firp.core.contract import validate_plan
 from service.scorer import FeatureCache, ServiceModel, failure_steps, neutral_plan
 from tests.firp.bundle_helpers import export_tiny
 

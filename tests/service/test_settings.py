@@ -9,14 +9,15 @@ from pydantic import ValidationError
 
 import firp
 from service.__main__ import parse_args
-from service.settings import ServiceSettings, default_bundle_dir
+from firp.core.bundle_format import shipped_bundle_dir
+from service.settings import ServiceSettings
 
 
-def test_the_default_bundle_is_the_one_shipped_inside_the_firp_package(monkeypatch):
+def test_the_default_bundle_is_the_shipped_one_of_the_task(monkeypatch):
     for name in ("FIRP_SERVICE_BUNDLE", "FIRP_SERVICE_TASK"):
         monkeypatch.delenv(name, raising=False)
-    assert ServiceSettings().bundle_dir == Path(firp.__file__).parent / "bundles" / "stacking"
-    assert ServiceSettings(task="replacement").bundle_dir == default_bundle_dir("replacement")
+    assert ServiceSettings().bundle_dir == Path(firp.__file__).resolve().parents[1] / "models" / "stacking"
+    assert ServiceSettings(task="replacement").bundle_dir == shipped_bundle_dir("replacement")
     assert ServiceSettings(bundle="/b", task="replacement").bundle_dir == Path("/b")
 
 

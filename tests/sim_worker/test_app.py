@@ -18,10 +18,10 @@ with warnings.catch_warnings():  # starlette's TestClient on plain httpx: deprec
     warnings.simplefilter("ignore")
     from fastapi.testclient import TestClient
 
-from firp.contract import CATEGORY_INDEX, JOINT_UPPER, N_CATEGORIES
+from firp.core.contract import CATEGORY_INDEX, JOINT_UPPER, N_CATEGORIES
 from planner_client.tamp import PlannerConfig, TampPlanner
 from sim_worker.app import block_poses_json, create_app
-from sim_worker.collect import episode_order, simulate_episode
+from planner_client.collect import episode_order, simulate_episode
 from sim_worker.imaging import decode_png_b64
 from sim_worker.perception import PoseErrorConfig
 from sim_worker.scene import RenderConfig, SceneLayout

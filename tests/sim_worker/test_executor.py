@@ -10,7 +10,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from firp.contract import PlanValidationError
+from firp.core.contract import PlanValidationError
 from planner_client.tamp import PlannerConfig, TampPlanner
 from sim_worker.executor import execute_plan
 from sim_worker.perception import observation

@@ -2,7 +2,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from firp.contract import FINGER_OPEN, JOINT_LOWER, JOINT_NAMES, JOINT_UPPER
+from firp.core.contract import FINGER_OPEN, JOINT_LOWER, JOINT_NAMES, JOINT_UPPER
 from sim_worker.robot import GRIPPER_CTRL_MAX, PandaIndices, finger_ctrl, panda_spec
 
 

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 import torch
 
-from firp.contract import CATEGORY_INDEX, JOINT_LOWER, JOINT_UPPER, N_CATEGORIES
+from firp.core.contract import CATEGORY_INDEX, JOINT_LOWER, JOINT_UPPER, N_CATEGORIES
 from firp.model.config import EncoderConfig, FIRPConfig, GeometryConfig, RSSMConfig
 from firp.model.baselines import build_model
 from firp.model.plan_geometry import PlanGeometry, geometry_dim, panda_tcp_pose, pick_events, plan_geometry, tcp_yaw
 from planner_client.ik import PandaIK, rotation_yaw
 from planner_client.tamp import PlannerConfig, TampPlanner
-from sim_worker.collect import plan_episode
+from planner_client.collect import plan_episode
 from sim_worker.perception import PoseErrorConfig
 
 ORDER = ("red", "green", "blue")

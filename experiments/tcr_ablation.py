@@ -23,7 +23,7 @@ step's feature, the last frame's. Then it writes to ``--out``:
 * ``ablation.json`` (every number, per episode) and ``ablation.md`` (mean ± std over repeats per
   variant, a per-repeat table, the command).
 
-    python -m firp.ablation --eval-dir runs/eval-stacking-protocol --data data/stacking.h5 \\
+    python -m experiments.tcr_ablation --eval-dir runs/eval-stacking-protocol --data data/stacking.h5 \\
         --out docs/results/stacking_tcr_ablation
 
 Missing or unfinished checkpoints are skipped with a message naming them; an evaluation directory
@@ -37,7 +37,6 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import re
 import shlex
 import statistics
 import sys
@@ -51,10 +50,10 @@ import torch
 from safetensors.torch import load_file
 from tqdm import tqdm
 
-from firp.cli import int_in_range, positive_float
-from firp.contract import CATEGORIES
+from firp.core.cli_types import int_in_range, positive_float
+from firp.core.contract import CATEGORIES
 from firp.data import SequenceData, load_sequences
-from firp.evaluate import FIRP_VARIANTS
+from firp.evaluate import FIRP_VARIANTS, parse_run_name, run_name
 from firp.features import DEFAULT_CACHE_DIR
 from firp.losses import atc, ttc
 from firp.model.baselines import build_model
@@ -91,7 +90,6 @@ FEATURE_STATS: dict[str, tuple[str, str]] = {
 
 
 #: ``r{repeat}-{method}``: the evaluation's name of a run (its row file's stem and its directory).
-RUN_NAME = re.compile(r"r(?P<repeat>\d+)-(?P<method>\w+)")
 
 
 @dataclass(frozen=True)
@@ -115,14 +113,14 @@ def find_checkpoints(eval_dir: Path, methods: tuple[str, ...], repeats: set[int]
     """
     runs: set[tuple[int, str]] = set()  # (repeat, method) with a row file or a run directory
     for path in eval_dir.iterdir():
-        match = RUN_NAME.fullmatch(path.stem if path.suffix == ".json" else path.name)
-        if match and match["method"] in methods:
-            runs.add((int(match["repeat"]), match["method"]))
+        parsed = parse_run_name(path.stem if path.suffix == ".json" else path.name)
+        if parsed and parsed[1] in methods:
+            runs.add(parsed)
     out, skipped = [], []
     for repeat, method in sorted(runs, key=lambda rm: (rm[0], methods.index(rm[1]))):
         if repeats is not None and repeat not in repeats:
             continue
-        name = f"r{repeat}-{method}"
+        name = run_name(repeat, method)
         row_path, ckpt = eval_dir / f"{name}.json", eval_dir / name / "checkpoint"
         state_path, weights = ckpt / "state.json", ckpt / "best.safetensors"
         if not state_path.exists() or not weights.exists():
@@ -236,7 +234,7 @@ def analyse(model: FIRP, ckpt: Checkpoint, test: SequenceData, traj: dict[str, n
         "test_index": [int(i) for i in ckpt.row["test_index"]],
         "labels": [int(v) for v in test.labels.numpy()],
         "action_chunk": model.cfg.action_chunk, "frame_index": [int(i) for i in traj["frame_index"]],
-        "alpha": ckpt.config.alpha, "beta": ckpt.config.beta,
+        "alpha": ckpt.config.model.loss.alpha, "beta": ckpt.config.model.loss.beta,
         "test_balanced_accuracy": ckpt.row.get("test_balanced_accuracy"),
         "recorded_score_max_abs_diff": score_diff,
         "scale": float(err["scale"]), "spread": float(err["spread"]),
@@ -413,7 +411,7 @@ def plot_tsne(panels: list[tuple[str, np.ndarray, np.ndarray]], path: Path, subt
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = argparse.ArgumentParser(prog="python -m firp.ablation", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m experiments.tcr_ablation", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--eval-dir", type=Path, required=True, help="a python -m firp.evaluate output directory")
     parser.add_argument("--data", type=Path, required=True, help="the dataset that was evaluated")
@@ -508,7 +506,7 @@ def main(argv: list[str] | None = None) -> int:
     plot_tsne(panels, out / "tsne.png", f"repeat {tsne_repeat}, {len(tsne_info['episodes'])} test episodes, "
               f"{args.tsne_features} features")
     seconds = time.perf_counter() - started
-    command = f"python -m firp.ablation {shlex.join(argv)}"
+    command = f"python -m experiments.tcr_ablation {shlex.join(argv)}"
     (out / "ablation.json").write_text(json.dumps({
         "command": command, "eval_dir": str(args.eval_dir), "dataset": str(args.data), "dataset_hash": dataset_hash,
         "seconds": round(seconds, 1),

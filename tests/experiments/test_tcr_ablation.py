@@ -1,4 +1,4 @@
-"""The TCR ablation figures end to end: a real (tiny) evaluation, then firp.ablation on its directory."""
+"""The TCR ablation figures end to end: a real (tiny) evaluation, then experiments.tcr_ablation on its directory."""
 
 import json
 import math
@@ -8,7 +8,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from firp.ablation import main
+from experiments.tcr_ablation import main
 from firp.data import load_sequences
 from firp.model.firp import FIRP, chunk_actions, chunk_frame_index
 from firp.train import TrainConfig
@@ -81,7 +81,7 @@ def test_ablation_figures_and_numbers(tiny_dataset, evaluated, tmp_path, capsys)
     assert report["tsne"]["repeat"] == 0 and len(report["tsne"]["episodes"]) == 3
     assert report["tsne"]["methods"] == ["firp", "firp_tcr"]
     md = (out / "ablation.md").read_text()
-    assert "| FIRP + TCR | 1 | 4 |" in md and "python -m firp.ablation --eval-dir" in md
+    assert "| FIRP + TCR | 1 | 4 |" in md and "python -m experiments.tcr_ablation --eval-dir" in md
     # the final-step distance of one episode, recomputed independently from the model's building blocks
     for m in report["models"]:
         episode = m["test_index"][1]

@@ -3,7 +3,7 @@
 The simulator is deterministic: an outcome is a function of the true initial state and the plan.
 But a predictor sees the state only through an 84x84 image (about 5 mm per pixel on the stacking
 camera) and cannot know it better than that. This script executes each episode's plan (the one
-``sim_worker.collect`` would record for that seed: same scene, perception error, block order and
+``planner_client.collect`` would record for that seed: same scene, perception error, block order and
 planner) once from the true initial state and ``K`` more times from initial states that differ by
 a small random shift of every block (``--xy-mm`` in-plane std, ``--yaw-deg`` yaw std; a fifth of a
 pixel by default). The plan is fixed; only contact physics sees the difference.
@@ -19,13 +19,12 @@ noise, whatever its architecture.
 Each episode's record is appended to a JSONL file as soon as it is done, so an interrupted run
 resumes (``--resume`` is implicit: finished seeds are skipped).
 
-    MUJOCO_GL=egl .venv/bin/python benchmarks/outcome_sensitivity.py --task stacking --episodes 160
+    MUJOCO_GL=egl .venv/bin/python -m experiments.outcome_sensitivity --task stacking --episodes 160
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import multiprocessing as mp
 import os
@@ -77,7 +76,7 @@ def perturbed_blocks(true_blocks: np.ndarray, seed: int, k: int, xy_std_m: float
 
 def run_episode(unit: tuple[int, tuple[str, ...]]) -> dict:
     """The plan of (seed, block order) executed from its true state and from ``K`` perturbed ones."""
-    from sim_worker.collect import plan_episode
+    from planner_client.collect import plan_episode
     from sim_worker.executor import ExecutorConfig, execute_plan
     from sim_worker.perception import PoseErrorConfig
 
@@ -154,21 +153,13 @@ def analyse(records: list[dict]) -> dict:
     }
 
 
-def _replan_threshold_module():
-    """The sibling benchmark whose replay of the loop's rule this script applies to ``p``."""
-    spec = importlib.util.spec_from_file_location("replan_threshold", Path(__file__).with_name("replan_threshold.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def analyse_loop(records: list[dict], orders: list[tuple[str, ...]], scores_path: Path | None) -> dict:
     """The replanning loop's ceiling: every candidate judged by its perturbed success rate ``p``.
 
-    ``scores_path`` (``benchmarks/replan_threshold.py`` records of the same seeds, in trial order)
+    ``scores_path`` (``experiments/replan_threshold.py`` records of the same seeds, in trial order)
     adds the FIRP bundle's own choices and ranking on the same candidates, for comparison.
     """
-    replay = _replan_threshold_module()
+    from experiments import replan_threshold as replay
     by_seed: dict[int, dict[tuple[str, ...], dict]] = {}
     for r in records:
         by_seed.setdefault(int(r["seed"]), {})[tuple(r["order"])] = r
@@ -214,7 +205,7 @@ def analyse_loop(records: list[dict], orders: list[tuple[str, ...]], scores_path
 
 def main() -> None:
     from planner_client.tamp import block_orders
-    from sim_worker.collect import episode_order
+    from planner_client.collect import episode_order
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--task", default="stacking", choices=["stacking", "replacement"])
@@ -229,7 +220,7 @@ def main() -> None:
     parser.add_argument("--xy-mm", type=float, default=1.0, help="in-plane std of the block shift, mm")
     parser.add_argument("--yaw-deg", type=float, default=1.0, help="std of the block turn, degrees")
     parser.add_argument("--scores", type=Path, default=None,
-                        help="benchmarks/replan_threshold.py records of the same seeds: compare FIRP's choices")
+                        help="experiments/replan_threshold.py records of the same seeds: compare FIRP's choices")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--records", type=Path, default=None,
                         help="JSONL of finished plans (default: runs/sensitivity-<task>[-loop]_<xy>mm.jsonl)")
@@ -271,7 +262,7 @@ def main() -> None:
     if loop:
         summary["loop"] = analyse_loop(records, orders, args.scores)
     result = {
-        "command": f"MUJOCO_GL=egl .venv/bin/python benchmarks/outcome_sensitivity.py --task {args.task} "
+        "command": f"MUJOCO_GL=egl .venv/bin/python -m experiments.outcome_sensitivity --task {args.task} "
                    f"--candidates {args.candidates} --episodes {args.episodes} --seed-offset {seed_offset} "
                    f"--perturbations {args.perturbations} --xy-mm {args.xy_mm:g} --yaw-deg {args.yaw_deg:g}"
                    + (f" --max-iterations {args.max_iterations}" if loop else "")

@@ -1,17 +1,10 @@
-"""The scene descriptions of benchmarks/outcome_predictability.py, against hand-made scenes."""
+"""The scene descriptions of experiments/outcome_predictability.py, against hand-made scenes."""
 
-import importlib.util
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-_SPEC = importlib.util.spec_from_file_location(
-    "outcome_predictability", Path(__file__).resolve().parents[1] / "benchmarks" / "outcome_predictability.py")
-predictability = importlib.util.module_from_spec(_SPEC)
-sys.modules[_SPEC.name] = predictability
-_SPEC.loader.exec_module(predictability)
+from experiments import outcome_predictability as predictability
 
 NAMES = ["red", "green", "blue"]
 
@@ -67,15 +60,13 @@ def test_candidates_are_described_as_the_loop_sees_and_plans_them():
     the scene the loop's own simulator starts (the same estimates and true blocks) and the plan the
     loop's planner makes for it: where the plan's grasp and release steps put the TCP (forward
     kinematics of the plan's joint targets) is where the description says the blocks are and go."""
-    from firp.contract import CATEGORIES, split_plan
+    from firp.core.contract import CATEGORIES, split_plan
     from planner_client.embedded import EmbeddedSim
     from planner_client.ik import rotation_yaw
     from planner_client.tamp import TampPlanner
 
-    spec = importlib.util.spec_from_file_location(
-        "grasp_frame_scorer", Path(__file__).resolve().parents[1] / "benchmarks" / "grasp_frame_scorer.py")
-    scorer = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(scorer)
+    from experiments import grasp_frame_scorer as scorer
+
     seed, orders = 100_003, [["red", "green", "blue"], ["blue", "red", "green"]]
     described = scorer.candidate_attrs("stacking", seed, orders)
     sim = EmbeddedSim(image_size=16)
@@ -124,7 +115,7 @@ def test_a_simulated_episodes_plan_is_made_again_exactly_and_described_by_forwar
     import json
 
     from planner_client.tamp import PlannerConfig, TampPlanner
-    from sim_worker.collect import episode_order, simulate_episode
+    from planner_client.collect import episode_order, simulate_episode
     from sim_worker.perception import PoseErrorConfig
     from sim_worker.scene import RenderConfig, SceneLayout
     from sim_worker.world import World

@@ -1,6 +1,6 @@
 """What would the replanning loop gain from a scorer that reads the plan in each grasp's frame?
 
-``benchmarks/outcome_predictability.py`` found that gradient boosting on the plan's geometry in each
+``experiments/outcome_predictability.py`` found that gradient boosting on the plan's geometry in each
 grasp's frame (``grasp_frame_plan``: no privileged information) predicts stacking outcomes far
 better than any learned model here. This script puts that classifier in the loop's place, with no
 information the main job does not have:
@@ -8,40 +8,30 @@ information the main job does not have:
 1. train it on ``collect``'s episodes 0..N-1 (the cached, re-simulated labels of
    ``outcome_predictability.py --simulate TASK:N``);
 2. score every candidate plan of the calibration seeds (200000+) and the main job's seeds (100000+)
-   recorded by ``benchmarks/replan_threshold.py`` (whose records hold each candidate's real outcome);
+   recorded by ``experiments/replan_threshold.py`` (whose records hold each candidate's real outcome);
 3. replay the loop's rule (first candidate scoring at least the threshold, else the last) with the
    threshold that maximises success on the calibration seeds, and report it on the main job's seeds
    beside the shipped FIRP bundle's results on the same candidates.
 
-    MUJOCO_GL=egl .venv/bin/python benchmarks/grasp_frame_scorer.py --task stacking --train-episodes 640
+    MUJOCO_GL=egl .venv/bin/python -m experiments.grasp_frame_scorer --task stacking --train-episodes 640
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 from sklearn.ensemble import GradientBoostingClassifier
 
-HERE = Path(__file__).resolve().parent
-
-
-def _sibling(name: str):
-    spec = importlib.util.spec_from_file_location(name, HERE / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # dataclasses resolve their module by name
-    spec.loader.exec_module(module)
-    return module
+from experiments import outcome_predictability, replan_threshold
 
 
 def candidate_attrs(task: str, seed: int, orders: list[list[str]]) -> list[dict]:
     """The attrs ``collect`` would record for each candidate plan of ``seed`` (no execution)."""
     from planner_client.tamp import PlannerConfig, TampPlanner
-    from sim_worker.collect import plan_episode
+    from planner_client.collect import plan_episode
     from sim_worker.perception import PoseErrorConfig
 
     planner = TampPlanner(PlannerConfig())
@@ -56,7 +46,7 @@ def main() -> None:
                         help="folder with <task>-calibration.jsonl and <task>-test.jsonl from replan_threshold.py")
     parser.add_argument("--out", type=Path, default=None, help="default: docs/results/grasp_frame_scorer_<task>.json")
     args = parser.parse_args()
-    predictability, replay = _sibling("outcome_predictability"), _sibling("replan_threshold")
+    predictability, replay = outcome_predictability, replan_threshold
     from planner_client.loop import read_records
     from sim_worker.scene import BLOCK_NAMES
 
@@ -79,7 +69,7 @@ def main() -> None:
     grid = np.round(np.arange(0.02, 0.981, 0.02), 2)
     cal_scores, cal_success, _, _ = splits["calibration"]
     threshold = float(max(grid, key=lambda t: (round(replay.replan_success(cal_scores, cal_success, t)[0], 9), -t)))
-    result: dict = {"command": f"MUJOCO_GL=egl .venv/bin/python benchmarks/grasp_frame_scorer.py --task {args.task} "
+    result: dict = {"command": f"MUJOCO_GL=egl .venv/bin/python -m experiments.grasp_frame_scorer --task {args.task} "
                                f"--train-episodes {args.train_episodes}",
                     "train_episodes": int(len(y)), "threshold_chosen_on_calibration": threshold, "splits": {}}
     for split, (scores, success, firp_scores, bundle) in splits.items():

@@ -16,16 +16,16 @@ seeds 0.. nor the main job's 100000 + i) and only then read off the *test* seeds
 the main job's own trials), so the test numbers are not tuned on. Records are written per trial to
 a JSONL file (resumable: ``--resume``); the analysis prints a table, writes JSON and a PNG curve.
 
-    MUJOCO_GL=egl .venv/bin/python benchmarks/replan_threshold.py --task stacking --split calibration --trials 100
-    MUJOCO_GL=egl .venv/bin/python benchmarks/replan_threshold.py --task stacking --split test --trials 50
-    .venv/bin/python benchmarks/replan_threshold.py --task stacking --analyse-only
+    MUJOCO_GL=egl .venv/bin/python -m experiments.replan_threshold --task stacking --split calibration --trials 100
+    MUJOCO_GL=egl .venv/bin/python -m experiments.replan_threshold --task stacking --split test --trials 50
+    .venv/bin/python -m experiments.replan_threshold --task stacking --analyse-only
 
 Another bundle on the *same* candidates, without executing them again (``--rescore DIR``: each
 trial's scene is set up from its seed, its recorded orders planned again -- planner and scene are
 deterministic -- and scored by ``--bundle``; the recorded outcomes are kept; records go to
 ``--records-dir``):
 
-    MUJOCO_GL=egl .venv/bin/python benchmarks/replan_threshold.py --task stacking --rescore docs/results/replan_threshold \
+    MUJOCO_GL=egl .venv/bin/python -m experiments.replan_threshold --task stacking --rescore docs/results/replan_threshold \
         --bundle runs/bundle-geometry --records-dir runs/replan_threshold_geometry --out docs/results/replan_threshold_stacking_geometry.json
 """
 
@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from planner_client.loop import read_records
+from planner_client.loop import chosen_candidate, read_records
 
 ROOT = Path(__file__).resolve().parents[1]
 SPLIT_SEEDS = {"calibration": 200_000, "test": 100_000}
@@ -135,9 +135,7 @@ def arrays(records: list[dict], path: Path) -> tuple[np.ndarray, np.ndarray, dic
 
 def replan_success(scores: np.ndarray, success: np.ndarray, threshold: float) -> tuple[float, float]:
     """Success rate of the loop's rule at ``threshold`` and the mean number of plans it scores."""
-    k = scores.shape[1]
-    passes = scores >= threshold
-    chosen = np.where(passes.any(axis=1), passes.argmax(axis=1), k - 1)  # first accepted, else the last
+    chosen = np.array([chosen_candidate(row, threshold) for row in scores])  # the loop's own rule
     return float(success[np.arange(len(chosen)), chosen].mean()), float((chosen + 1).mean())
 
 
@@ -167,7 +165,7 @@ def choose_threshold(curve: list[dict]) -> float:
 
 def analyse(task: str, files: dict[str, Path], out_json: Path, out_png: Path, command: str) -> dict:
     loaded = {split: read(path) for split, path in files.items() if path.exists()}  # (scores, success, model)
-    made_by = [f"MUJOCO_GL=egl python benchmarks/replan_threshold.py --task {task} --split {split} --trials "
+    made_by = [f"MUJOCO_GL=egl python -m experiments.replan_threshold --task {task} --split {split} --trials "
                f"{len(scores)}" for split, (scores, _, _) in loaded.items()]
     report: dict = {"command": command, "records_made_by": made_by, "task": task,
                     "machine": {"python": platform.python_version()}, "grid": GRID.tolist(), "splits": {}}
@@ -242,7 +240,7 @@ def main() -> None:
     ap.add_argument("--split", choices=tuple(SPLIT_SEEDS), default="calibration")
     ap.add_argument("--trials", type=int, default=100)
     ap.add_argument("--max-iterations", type=int, default=6)
-    ap.add_argument("--bundle", type=Path, default=None, help="default: firp/bundles/<task>")
+    ap.add_argument("--bundle", type=Path, default=None, help="default: models/<task>")
     ap.add_argument("--records-dir", type=Path, default=ROOT / "runs" / "replan_threshold")
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--analyse-only", action="store_true", help="no new trials: replay the records on disk")
@@ -254,7 +252,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.trials < 1 or args.max_iterations < 1:
         ap.error("--trials and --max-iterations must be >= 1")
-    bundle = args.bundle or ROOT / "firp" / "bundles" / args.task
+    bundle = args.bundle or ROOT / "models" / args.task
     files = {s: args.records_dir / f"{args.task}-{s}.jsonl" for s in SPLIT_SEEDS}
     if args.rescore is not None:
         sources = {s: args.rescore / f"{args.task}-{s}.jsonl" for s in SPLIT_SEEDS}

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from firp.contract import DEFAULT_T, FPS
-from firp.episodes import EpisodeDataset, EpisodeRecord, completed_indices, consolidate, write_episode_part
+from firp.core.contract import DEFAULT_T, FPS
+from firp.core.episodes import EpisodeDataset, EpisodeRecord, completed_indices, consolidate, write_episode_part
 from planner_client.tamp import Plan, PlannerConfig, TampPlanner, block_orders
 from sim_worker.executor import ExecutorConfig, execute_plan
 from sim_worker.perception import PoseErrorConfig, observation
@@ -41,7 +41,6 @@ class CollectConfig:
     image_size: int = 84
     pose_error: PoseErrorConfig = field(default_factory=PoseErrorConfig)
     sampler: SamplerConfig = field(default_factory=SamplerConfig)
-    valid_fraction: float | None = None  # the splitter's job by default (mask/ left empty)
 
     @property
     def parts_dir(self) -> Path:
@@ -152,7 +151,7 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
                 bar.set_postfix(success=f"{successes / n:.2f}")
         bar.close()
     if pending or not config.out.exists():
-        consolidate(config.parts_dir, config.out, dataset_attrs(config), valid_fraction=config.valid_fraction)
+        consolidate(config.parts_dir, config.out, dataset_attrs(config))
     with EpisodeDataset(config.out) as ds:
         balance = ds.class_balance()
     balance["new_episodes"] = len(pending)

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firp.contract import CATEGORIES, CONTRACT_VERSION, validate_plan
-from firp.episodes import EpisodeDataset
-from sim_worker.__main__ import main as cli_main
-from sim_worker.collect import CollectConfig, collect, episode_order
+from firp.core.contract import CATEGORIES, CONTRACT_VERSION, validate_plan
+from firp.core.episodes import EpisodeDataset
+from planner_client.__main__ import main as cli_main
+from planner_client.collect import CollectConfig, collect, episode_order
 
 TINY = dict(horizon=24, image_size=24, workers=1)
 
@@ -55,7 +55,7 @@ def test_killed_collection_resumes_and_loses_nothing(tmp_path):
     out = tmp_path / "killed.h5"
     args = ["collect", "--task", "stacking", "--episodes", "4", "--out", str(out), "--workers", "1",
             "-T", "24", "--image-size", "24", "--no-progress"]
-    proc = subprocess.Popen([sys.executable, "-m", "sim_worker", *args], start_new_session=True,
+    proc = subprocess.Popen([sys.executable, "-m", "planner_client", *args], start_new_session=True,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     parts = Path(str(out) + ".parts")
     deadline = time.time() + 120
@@ -84,3 +84,19 @@ def test_cli_rejects_bad_arguments_with_the_rule(argv, message, capsys):
         cli_main(argv)
     assert exit_info.value.code == 2
     assert message in capsys.readouterr().err
+
+
+def test_the_sim_workers_old_collect_command_hands_over_to_the_planners(tmp_path):
+    """``python -m sim_worker collect`` was the documented command; the sim worker imports no planner, so it
+    runs ``python -m planner_client collect`` with the same arguments instead."""
+    out = tmp_path / "old.h5"
+    done = subprocess.run([sys.executable, "-m", "sim_worker", "collect", "--task", "replacement", "--episodes", "1",
+                           "--out", str(out), "--workers", "1", "-T", "24", "--image-size", "24", "--no-progress"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "running python -m planner_client collect" in done.stderr
+    with EpisodeDataset(out) as ds:
+        assert len(ds) == 1 and ds.attrs["task"] == "replacement"
+    bad = subprocess.run([sys.executable, "-m", "sim_worker", "collect", "--task", "juggling"], capture_output=True,
+                         text=True, timeout=60)
+    assert bad.returncode == 2 and "invalid choice: 'juggling'" in bad.stderr

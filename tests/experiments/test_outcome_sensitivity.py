@@ -1,17 +1,10 @@
-"""The ceiling analysis of benchmarks/outcome_sensitivity.py, against hand-worked records."""
+"""The ceiling analysis of experiments/outcome_sensitivity.py, against hand-worked records."""
 
-import importlib.util
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-_SPEC = importlib.util.spec_from_file_location(
-    "outcome_sensitivity", Path(__file__).resolve().parents[1] / "benchmarks" / "outcome_sensitivity.py")
-sensitivity = importlib.util.module_from_spec(_SPEC)
-sys.modules[_SPEC.name] = sensitivity  # dataclasses resolve their module by name
-_SPEC.loader.exec_module(sensitivity)
+from experiments import outcome_sensitivity as sensitivity
 
 ORDERS = [("a", "b"), ("b", "a")]
 

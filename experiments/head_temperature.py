@@ -6,7 +6,7 @@ and reports training loss and validation balanced accuracy every 50 steps. With 
 [-1, 1], L = 20 makes the attention practically a mean over the 120 steps, which dilutes the
 late frames where a failure shows.
 
-    python benchmarks/head_temperature.py --data data/stacking.h5
+    python -m experiments.head_temperature --data data/stacking.h5
 """
 
 from __future__ import annotations
@@ -62,7 +62,7 @@ def main() -> None:
         print(f"{name:<16} " + "  ".join(f"step {c['step']}: loss {c['train_loss']:.3f} val BA {c['valid_balanced_accuracy']:.3f}"
                                           for c in curve), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"command": f"python benchmarks/head_temperature.py --data {args.data}",
+    args.out.write_text(json.dumps({"command": f"python -m experiments.head_temperature --data {args.data}",
                                     "results": results}, indent=1))
     print(f"wrote {args.out}")
 

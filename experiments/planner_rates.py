@@ -6,7 +6,7 @@ error and with zero error. Targets: default-order success in 25-60% (stacking) a
 35-75% (replacement) with the default error, and for at least half of the failing seeds some
 other order succeeds.
 
-    MUJOCO_GL=egl python benchmarks/planner_rates.py --seeds 200 --workers 2
+    MUJOCO_GL=egl python -m experiments.planner_rates --seeds 200 --workers 2
 """
 
 from __future__ import annotations
@@ -101,7 +101,7 @@ def main() -> None:
     print(table)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({
-        "command": "MUJOCO_GL=egl python benchmarks/planner_rates.py " + f"--seeds {args.seeds} --workers {args.workers}",
+        "command": "MUJOCO_GL=egl python -m experiments.planner_rates " + f"--seeds {args.seeds} --workers {args.workers}",
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
         "table": table, "results": results,
     }, indent=1))

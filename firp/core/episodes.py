@@ -12,9 +12,9 @@ Why this shape:
   existing dataset (a previous run that asked for fewer episodes) is carried over, so a run can be
   extended or resumed: :func:`completed_indices` tells the collector which episodes exist already.
 * The layout follows robomimic (``data/demo_<i>/obs/agentview_image``, ``data/demo_<i>/actions``,
-  ``data/demo_<i>/states``, ``data.attrs["total"]``, ``mask/train`` and ``mask/valid``), so the
-  usual robomimic/MimicGen tools and habits apply. The per-demo label is ``attrs["success"]``.
-* Actions are plans in the sense of :mod:`firp.contract` and are validated with its one validator
+  ``data/demo_<i>/states``, ``data.attrs["total"]``), so the usual robomimic/MimicGen tools and
+  habits apply. The per-demo label is ``attrs["success"]``.
+* Actions are plans in the sense of :mod:`firp.core.contract` and are validated with its one validator
   before anything is written, so a dataset can never hold an action the service would reject.
 
 Attribute values may be ``str``, ``int``, ``float``, ``bool`` or JSON-able containers (lists,
@@ -39,7 +39,7 @@ from typing import Any, Union
 import h5py
 import numpy as np
 
-from firp.contract import CATEGORIES, CONTRACT_VERSION, PlanLimits, validate_plan
+from firp.core.contract import CATEGORIES, CONTRACT_VERSION, PlanLimits, validate_plan
 
 __all__ = [
     "AttrValue",
@@ -53,10 +53,8 @@ __all__ = [
     "consolidate",
     "demo_name",
     "part_path",
-    "read_split",
     "validate_record",
     "write_episode_part",
-    "write_split",
 ]
 
 AttrValue = Union[str, int, float, bool, list, dict]
@@ -114,7 +112,6 @@ class ConsolidationResult:
     carried_over: tuple[int, ...]
     skipped_duplicates: tuple[int, ...]
     rewritten: bool
-    split_written: bool
 
 
 # --------------------------------------------------------------------------------------------
@@ -252,7 +249,7 @@ def _full_dataset_attrs(dataset_attrs: Mapping[str, Any]) -> dict[str, Any]:
     for key, value in fixed.items():
         if key in attrs and attrs[key] != value:
             raise EpisodeValidationError(
-                f"dataset attribute {key!r}={attrs[key]!r} contradicts firp.contract ({value!r})"
+                f"dataset attribute {key!r}={attrs[key]!r} contradicts firp.core.contract ({value!r})"
             )
         attrs[key] = value
     return attrs
@@ -266,7 +263,7 @@ def _full_dataset_attrs(dataset_attrs: Mapping[str, Any]) -> dict[str, Any]:
 def validate_record(record: EpisodeRecord, limits: PlanLimits = PlanLimits()) -> EpisodeRecord:
     """Check an episode before it is written and return a normalized copy (dtypes, plain attrs).
 
-    Actions must pass :func:`firp.contract.validate_plan` (raises its ``PlanValidationError``
+    Actions must pass :func:`firp.core.contract.validate_plan` (raises its ``PlanValidationError``
     with field ``actions``); frames must be uint8 ``(T, H, W, 3)``; states ``(T, S)``; all three
     must agree on ``T``. Anything else raises :class:`EpisodeValidationError` saying what.
     """
@@ -475,13 +472,11 @@ def consolidate(
     dataset_attrs: Mapping[str, Any],
     *,
     keep_parts: bool = False,
-    valid_fraction: float | None = None,
-    split_seed: int = 0,
 ) -> ConsolidationResult:
     """Merge finished parts (and an existing dataset at ``out_path``) into one robomimic file.
 
     ``dataset_attrs`` (fps, T, image size, env, task, ...) go on the ``data`` group together with
-    ``categories`` and ``contract_version`` from :mod:`firp.contract`, ``total`` (samples, as in
+    ``categories`` and ``contract_version`` from :mod:`firp.core.contract`, ``total`` (samples, as in
     robomimic) and ``num_demos``. If ``out_path`` exists its demos are carried over; its dataset
     attributes must equal the new ones, else :class:`EpisodeValidationError` (mixing episodes of
     different settings would silently poison training). A part whose index the file already holds
@@ -489,9 +484,9 @@ def consolidate(
     the parts were removed). All demos must share image size and state width.
 
     The new file is built next to ``out_path`` and ``os.replace``-d over it, so ``out_path`` is
-    always either the old or the new complete dataset. A rewrite drops an old ``mask/`` split (it
-    would not cover the new demos); pass ``valid_fraction`` to write a fresh stratified split in
-    the same atomic step. Unless ``keep_parts``, the parts directory is removed afterwards.
+    always either the old or the new complete dataset. Unless ``keep_parts``, the parts directory is
+    removed afterwards. (No ``mask/`` split is written: training splits by seed with
+    :func:`firp.data.stratified_split`, so a dataset's splits never go stale when it grows.)
     """
     parts = Path(parts_dir)
     out = Path(out_path)
@@ -510,7 +505,6 @@ def consolidate(
         raise EpisodeValidationError(f"nothing to consolidate: no finished parts in {parts} and no {out}")
 
     rewritten = False
-    split_written = False
     if new:
         out.parent.mkdir(parents=True, exist_ok=True)
         _remove_stale_temps(out.parent, re.compile(re.escape(out.name) + "$"))
@@ -534,9 +528,6 @@ def consolidate(
                             )
                         _copy_demo(part["demo"], data, demo_name(idx))
                 _finish_data_group(data, attrs)
-                if valid_fraction is not None:
-                    _write_split_group(dst, valid_fraction, split_seed)
-                    split_written = True
             _fsync_path(tmp)
             os.replace(tmp, out)
         except BaseException:
@@ -544,9 +535,6 @@ def consolidate(
             raise
         _fsync_path(out.parent)
         rewritten = True
-    elif valid_fraction is not None:
-        write_split(out, valid_fraction, split_seed)
-        split_written = True
 
     if not keep_parts and parts.exists():
         shutil.rmtree(parts)
@@ -557,7 +545,6 @@ def consolidate(
         carried_over=tuple(existing),
         skipped_duplicates=duplicates,
         rewritten=rewritten,
-        split_written=split_written,
     )
 
 
@@ -579,83 +566,6 @@ def _finish_data_group(data: h5py.Group, attrs: Mapping[str, Any]) -> None:
     _write_attrs(data, attrs)
     data.attrs["total"] = np.int64(total)
     data.attrs["num_demos"] = np.int64(len(names))
-
-
-# --------------------------------------------------------------------------------------------
-# Train/valid split (robomimic mask/ group)
-# --------------------------------------------------------------------------------------------
-
-
-def _compute_split(
-    names: list[str], labels: np.ndarray, valid_fraction: float, seed: int
-) -> tuple[list[str], list[str]]:
-    """Stratified split: the same share of successes and failures goes to valid, reproducibly."""
-    if not 0.0 <= valid_fraction < 1.0:
-        raise EpisodeValidationError(f"valid_fraction must be in [0, 1), got {valid_fraction}")
-    rng = np.random.default_rng(seed)
-    valid: list[str] = []
-    for label in (False, True):
-        members = [n for n, lab in zip(names, labels) if bool(lab) == label]
-        n = len(members)
-        n_valid = int(round(n * valid_fraction))
-        if valid_fraction > 0.0 and n >= 2:
-            n_valid = min(max(n_valid, 1), n - 1)  # both sides see each class when they can
-        perm = rng.permutation(n)
-        valid.extend(members[i] for i in perm[:n_valid])
-    valid_set = set(valid)
-    train = [n for n in names if n not in valid_set]
-    return train, sorted(valid, key=_demo_index)
-
-
-def _write_split_group(f: h5py.File, valid_fraction: float, seed: int) -> tuple[list[str], list[str]]:
-    data = f["data"]
-    names = sorted(data, key=_demo_index)
-    labels = np.array([bool(data[n].attrs["success"]) for n in names], dtype=bool)
-    train, valid = _compute_split(names, labels, valid_fraction, seed)
-    if "mask" in f:
-        del f["mask"]
-    mask = f.create_group("mask")
-    for split_name, members in (("train", train), ("valid", valid)):
-        mask.create_dataset(split_name, data=np.array([m.encode("utf-8") for m in members], dtype="S"))
-    mask.attrs["valid_fraction"] = np.float64(valid_fraction)
-    mask.attrs["seed"] = np.int64(seed)
-    return train, valid
-
-
-def write_split(path: str | os.PathLike[str], valid_fraction: float, seed: int = 0) -> dict[str, list[str]]:
-    """Write robomimic ``mask/train`` and ``mask/valid`` (demo names as bytes), stratified by label.
-
-    Editing an HDF5 file in place is not crash-safe, so the file is copied next to itself, the
-    split written into the copy and the copy ``os.replace``-d over the original (costs one file
-    copy; :func:`consolidate` can write the split in its own atomic step instead).
-    """
-    src = Path(path)
-    tmp = _temp_path_for(src)
-    try:
-        shutil.copyfile(src, tmp)
-        with h5py.File(tmp, "r+") as f:
-            train, valid = _write_split_group(f, valid_fraction, seed)
-        _fsync_path(tmp)
-        os.replace(tmp, src)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    _fsync_path(src.parent)
-    return {"train": train, "valid": valid}
-
-
-def read_split(path: str | os.PathLike[str], name: str) -> list[str]:
-    """Demo names of split ``name`` (``train`` or ``valid``) written by :func:`write_split`."""
-    with h5py.File(path, "r") as f:
-        return _read_split_from(f, name, Path(path))
-
-
-def _read_split_from(f: h5py.File, name: str, path: Path) -> list[str]:
-    key = f"mask/{name}"
-    if key not in f:
-        available = sorted(f["mask"]) if "mask" in f else []
-        raise KeyError(f"{path} has no split {name!r} (available: {available}); call write_split() first")
-    return [m.decode("utf-8") if isinstance(m, bytes) else str(m) for m in f[key][()]]
 
 
 # --------------------------------------------------------------------------------------------
@@ -772,10 +682,6 @@ class EpisodeDataset:
             "failure": n - n_success,
             "success_rate": (n_success / n) if n else float("nan"),
         }
-
-    def split(self, name: str) -> list[str]:
-        """Demo names of split ``name`` (see :func:`write_split`)."""
-        return _read_split_from(self._file, name, self.path)
 
     def content_hash(self) -> str:
         """sha256 over names, actions, labels and image bytes, in demo order (a cache key).

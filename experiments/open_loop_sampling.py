@@ -3,7 +3,7 @@
 Retrains one finished tuning trial's config (same split, same seed) with the open loop rolled on
 means instead of samples, and prints both validation curves side by side; writes JSON.
 
-    .venv/bin/python benchmarks/open_loop_sampling.py --data data/stacking.h5 \
+    .venv/bin/python -m experiments.open_loop_sampling --data data/stacking.h5 \
         --reference runs/tune-firp-stacking-prod3/trial_0002 --epochs 40
 """
 
@@ -44,7 +44,7 @@ def main() -> None:
     for epoch, (a, b) in enumerate(zip(samples, means)):
         print(f"{epoch:5d} | {a:.3f} | {b:.3f}")
     args.out.write_text(json.dumps({
-        "command": f"benchmarks/open_loop_sampling.py --data {args.data} --reference {args.reference} "
+        "command": f"experiments/open_loop_sampling.py --data {args.data} --reference {args.reference} "
                    f"--epochs {args.epochs} --threads {args.threads}",
         "reference_threads": ref.threads, "threads": args.threads,
         "validation_balanced_accuracy": {"samples_reference": samples, "means": means},

@@ -1,22 +1,15 @@
-"""benchmarks/prediction_gap.py: FIRP's head on predicted, real and first-frame-only sequences."""
+"""experiments/prediction_gap.py: FIRP's head on predicted, real and first-frame-only sequences."""
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import pytest
 import torch
 
-from firp.ablation import find_checkpoints, load_model
+from experiments.tcr_ablation import find_checkpoints, load_model
 from firp.data import load_sequences
 from firp.evaluate import main as evaluate
 
-_SPEC = importlib.util.spec_from_file_location(
-    "prediction_gap", Path(__file__).resolve().parents[2] / "benchmarks" / "prediction_gap.py")
-gap = importlib.util.module_from_spec(_SPEC)
-sys.modules[_SPEC.name] = gap
-_SPEC.loader.exec_module(gap)
+from experiments import prediction_gap as gap
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,7 @@ world model's predictions add now. Reads the checkpoints that ``python -m firp.e
 its results directory (no training), compares with the baselines of the same run, prints a table
 and writes JSON.
 
-    .venv/bin/python benchmarks/prediction_gap.py --data data/stacking.h5 \
+    .venv/bin/python -m experiments.prediction_gap --data data/stacking.h5 \
         --eval-dir runs/eval-stacking-geometry --out docs/results/prediction_gap_stacking_geometry.json
 """
 
@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from firp.ablation import find_checkpoints, load_model
+from experiments.tcr_ablation import find_checkpoints, load_model
 from firp.data import SequenceData, load_sequences
 from firp.evaluate import BASELINES, FIRP_VARIANTS, TARGET_MARGIN, best_baseline, ensemble_rows, held_out_metrics, \
     mean_std, split_indices
@@ -135,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
 
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({
-        "command": f"benchmarks/prediction_gap.py --data {args.data} --eval-dir {args.eval_dir} --out {args.out}",
+        "command": f"experiments/prediction_gap.py --data {args.data} --eval-dir {args.eval_dir} --out {args.out}",
         "dataset_hash": data.dataset_hash, "repeats": repeats, "sources": SOURCES,
         "per_run": per_run, "ensemble": ensemble,
         "baselines_test_balanced_accuracy": baselines, "oracle_test_balanced_accuracy": oracle,

@@ -1,15 +1,10 @@
-"""The replay of the replanning loop in benchmarks/replan_threshold.py, against hand-worked trials."""
+"""The replay of the replanning loop in experiments/replan_threshold.py, against hand-worked trials."""
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-_SPEC = importlib.util.spec_from_file_location(
-    "replan_threshold", Path(__file__).resolve().parents[1] / "benchmarks" / "replan_threshold.py")
-replan = importlib.util.module_from_spec(_SPEC)
-_SPEC.loader.exec_module(replan)
+from experiments import replan_threshold as replan
 
 # three trials, three candidates each (in the loop's order)
 SCORES = np.array([[0.2, 0.7, 0.9],
@@ -61,6 +56,8 @@ def test_rescoring_refuses_records_of_another_task_or_split(tmp_path):
               "scores": [0.5], "success": [True], "model": {"threshold": 0.5}}
     src = tmp_path / "stacking-test.jsonl"
     src.write_text(json.dumps(record) + "\n")
-    bundle = Path(__file__).resolve().parents[1] / "firp" / "bundles" / "stacking"
+    from firp.core.bundle_format import shipped_bundle_dir
+
+    bundle = shipped_bundle_dir("stacking")
     with pytest.raises(SystemExit, match="expected stacking/calibration"):
         replan.rescore("stacking", "calibration", src, bundle, tmp_path / "x.jsonl", progress=False)

@@ -6,7 +6,7 @@ Why one shape, and why here: a planner calls both services in one loop and has t
 broke rule X at step t" from "my image is bad" from "the service is not ready" without parsing
 prose, whichever service answered. ``field`` names the offending part of the request (``null`` when
 no single part is to blame), ``rule`` is a short stable name a client may branch on, ``message`` is
-for humans. It sits beside :mod:`firp.contract`, whose :class:`~firp.contract.PlanValidationError`
+for humans. It sits beside :mod:`firp.core.contract`, whose :class:`~firp.core.contract.PlanValidationError`
 both services report through it; it needs FastAPI but neither torch nor mujoco, so each service
 imports it without the other's heavy dependencies.
 
@@ -28,7 +28,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import Scope
 
-from firp.contract import PlanValidationError
+from firp.core.contract import PlanValidationError
 
 __all__ = ["SCOPE_RULE", "STATUS_RULES", "ApiError", "error_content", "error_response", "field_from_loc",
            "install_error_handlers"]

@@ -23,11 +23,11 @@ The contrast between ``raw`` and ``grasp_frame_*`` tells whether the outcome is 
 chaotic or because it is a simple function in a frame the raw coordinates hide.
 
 Episodes come from recorded datasets or are simulated here without frames (``--simulate TASK:N``:
-``sim_worker.collect``'s episodes 0..N-1, the same seeds and block orders; labels are cached in a
+``planner_client.collect``'s episodes 0..N-1, the same seeds and block orders; labels are cached in a
 JSONL file as they finish, so an interrupted run resumes):
 
-    .venv/bin/python benchmarks/outcome_predictability.py data/stacking.h5 data/replacement.h5
-    MUJOCO_GL=egl .venv/bin/python benchmarks/outcome_predictability.py --simulate stacking:640
+    .venv/bin/python -m experiments.outcome_predictability data/stacking.h5 data/replacement.h5
+    MUJOCO_GL=egl .venv/bin/python -m experiments.outcome_predictability --simulate stacking:640
 """
 
 from __future__ import annotations
@@ -47,14 +47,14 @@ from sklearn.pipeline import make_pipeline
 from sklearn.preprocessing import StandardScaler
 from tqdm import tqdm
 
-Episode = tuple[dict, bool]  # (record attrs as sim_worker.collect writes them, success)
+Episode = tuple[dict, bool]  # (record attrs as planner_client.collect writes them, success)
 FEATURE_SETS = ("raw", "grasp_frame_true", "grasp_frame_plan", "plan_fk")
 PLAN_KEY = "_plan"  # a dataset episode's recorded plan, kept beside its attrs
 
 
 def dataset_episodes(path: Path) -> tuple[list[Episode], list[str]]:
     """The episodes of a recorded dataset and its block names."""
-    from firp.episodes import EpisodeDataset
+    from firp.core.episodes import EpisodeDataset
 
     with EpisodeDataset(path) as ds:
         return [({**ds.demo_attrs(d), PLAN_KEY: ds.actions(d)}, ds.success(d)) for d in ds.demo_names], \
@@ -75,7 +75,7 @@ def _init_worker(task: str) -> None:
 
 
 def _simulate_one(seed: int) -> dict:
-    from sim_worker.collect import episode_order, simulate_episode
+    from planner_client.collect import episode_order, simulate_episode
     from sim_worker.perception import PoseErrorConfig
 
     record = simulate_episode(_worker["world"], _worker["planner"], _worker["task"], seed, episode_order(seed),
@@ -171,7 +171,7 @@ def episode_plan(attrs: dict) -> np.ndarray:
     if PLAN_KEY in attrs:
         return np.asarray(attrs[PLAN_KEY])
     from planner_client.tamp import PlannerConfig, TampPlanner
-    from sim_worker.collect import plan_episode
+    from planner_client.collect import plan_episode
     from sim_worker.perception import PoseErrorConfig
 
     if "planner" not in _worker:  # one planner (and its IK model) for every re-made plan
@@ -241,7 +241,7 @@ def main() -> None:
     print("| source | episodes | features | classifier | balanced accuracy (5-fold CV) |\n|---|---|---|---|---|")
     for r in results:
         print(f"| {r['source']} | {r['episodes']} | {r['features']} | {r['classifier']} | {r['balanced_accuracy_5fold']:.3f} |")
-    command = "benchmarks/outcome_predictability.py " + " ".join(
+    command = "experiments/outcome_predictability.py " + " ".join(
         [*map(str, args.datasets), *(f"--simulate {s}" for s in args.simulate)])
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"command": command, "results": results}, indent=1) + "\n")
