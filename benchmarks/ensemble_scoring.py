@@ -1,9 +1,9 @@
-"""Ensemble scoring: members fused vs vmapped vs a plain loop, and the cost of the backbone.
+"""Ensemble scoring: members fused vs a plain loop, and the cost of the backbone.
 
 Builds an M-member bundle of randomly initialised FIRP members (default FIRPConfig sizes: the
 member cost does not depend on the weights' values), or loads ``--bundle DIR`` (e.g. the shipped
 ``models/stacking``), then times the member computation of
-:class:`firp.ensemble.EnsembleScorer` with each ``--strategies`` (default ``loop vmap fused``) for
+:class:`firp.serving.EnsembleScorer` with each ``--strategies`` (default ``loop fused``) for
 N plans of T steps, interleaving them so that load from other processes hits all alike. Reports
 min and median over repeats, and each strategy's largest probability difference from the loop.
 The backbone runs once per call and is timed apart (``--backbone efficientnet_lite0`` for the
@@ -29,7 +29,7 @@ import torch
 
 from firp.bundle import BundleMember, export_bundle, load_bundle
 from firp.core.contract import JOINT_LOWER, JOINT_UPPER, make_plan
-from firp.ensemble import EnsembleScorer
+from firp.serving import EnsembleScorer
 from firp.model import EncoderConfig, FIRPConfig, build_model
 from firp.model.encoder import build_backbone
 
@@ -49,7 +49,7 @@ def main() -> None:
     ap.add_argument("--backbone", choices=["small_cnn", "efficientnet_lite0"], default="small_cnn")
     ap.add_argument("--bundle", type=Path, default=None,
                     help="time this bundle's members (its backbone, image size and T range) instead of random ones")
-    ap.add_argument("--strategies", nargs="+", choices=["loop", "vmap", "fused"], default=["loop", "vmap", "fused"])
+    ap.add_argument("--strategies", nargs="+", choices=["loop", "fused"], default=["loop", "fused"])
     ap.add_argument("--out", type=Path, default=None, help="write the results as JSON here")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)

@@ -54,7 +54,7 @@ def _scoring_setup(bundle_dir: Path) -> tuple:
     import torch
 
     from firp.bundle import load_bundle
-    from firp.ensemble import EnsembleScorer
+    from firp.serving import EnsembleScorer
     from planner_client.tamp import TampPlanner
     from sim_worker.worlds import TaskWorlds
 

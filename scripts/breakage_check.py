@@ -60,7 +60,7 @@ BREAKAGES = (
              "threshold, ba_at_threshold = choose_threshold(labels, probs[-1])",
              ("tests/firp/test_learnability.py::test_tuning_learns_and_the_bundles_manifest_numbers_are_its_own",)),
     Breakage("fused_attention_misattached", "the fused serving path gives each plan another plan's attention",
-             "firp/ensemble.py", "return logits, spread_chunk_weights(w.reshape(M * N, Tc), T, k).view(M, N, T)",
+             "firp/serving/fused.py", "return logits, spread_chunk_weights(w.reshape(M * N, Tc), T, k).view(M, N, T)",
              "return logits, spread_chunk_weights(w.reshape(M * N, Tc), T, k).view(M, N, T).flip(1)",
              ("tests/golden/test_shipped_bundles.py::test_the_fused_path_on_the_shipped_configuration_equals_the_members_forward_pass",)),
     Breakage("strict_acceptance", "the loop accepts a plan only strictly above the threshold",

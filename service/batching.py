@@ -1,6 +1,6 @@
 """Micro-batching: concurrent scoring requests share one forward pass through the ensemble.
 
-Why: with the members fused (:mod:`firp.ensemble`), one plan of T = 120 costs ~8 ms and eight
+Why: with the members fused (:mod:`firp.serving`), one plan of T = 120 costs ~8 ms and eight
 plans ~14 ms (measured on this project's 2-core CPU, one torch thread), because the sequential
 RSSM rollout is bound by per-step overhead and by streaming the weights, not by the number of
 rows. So eight planners calling at once are served far sooner together than one after another.

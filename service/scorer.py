@@ -1,14 +1,12 @@
 """The loaded model as the service uses it: bundle + ensemble scorer + feature cache + one lock.
 
-Why a layer between the routes and :class:`firp.ensemble.EnsembleScorer`:
+Why a layer between the routes and :class:`firp.serving.EnsembleScorer`:
 
 * **One forward pass at a time, off the event loop.** Passes run in a worker thread through an
-  ``anyio.CapacityLimiter`` of one token: with ``strategy="vmap"`` the members go through
-  ``torch.func.functional_call``, which swaps parameters on a shared module for the duration of a
-  call, so two threads inside it at once would read each other's weights (the default fused path
-  holds plain tensors and would not mind, but one token also keeps the one core the service is
-  sized for free of contention). CPU parallelism comes from torch's intra-op threads (``threads``
-  setting) and, beyond that, from more processes. Image decoding and plan validation run inside
+  ``anyio.CapacityLimiter`` of one token, which keeps the one core the service is sized for free of
+  contention (the fused path holds plain tensors and would be safe from several threads). CPU
+  parallelism comes from torch's intra-op threads (``threads`` setting) and, beyond that, from more
+  processes. Image decoding and plan validation run inside
   the same token: they cost well under a millisecond for a camera frame.
 * **Several requests per pass.** :meth:`ServiceModel.score_jobs` scores the plans of several
   requests (each with its own scene) in one pass per plan length; :mod:`service.batching` feeds it
@@ -52,7 +50,7 @@ from firp.core.contract import (
     make_plan,
     validate_plan,
 )
-from firp.ensemble import EnsembleScorer
+from firp.serving import EnsembleScorer
 
 __all__ = ["FeatureCache", "ModelScores", "ScoreJob", "ServiceModel", "failure_steps", "neutral_plan",
            "set_torch_threads"]
@@ -224,8 +222,7 @@ class ServiceModel:
         return await anyio.to_thread.run_sync(fn, limiter=self.limiter)
 
     def warm_up(self) -> float:
-        """Score a neutral plan through both member paths (the ensemble's plan for at most
-        ``AUTO_VMAP_MAX_N`` plans and the one above) so that the first real request does not pay for
+        """Score a neutral plan, alone and in a batch, so that the first real request does not pay for
         lazy initialisation; returns milliseconds.
         Fails if the bundle produces non-finite scores."""
         t = min(max(DEFAULT_T, self.t_min), self.t_max)

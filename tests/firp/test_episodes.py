@@ -15,7 +15,7 @@ import h5py
 import numpy as np
 import pytest
 
-import firp.core.episodes as episodes
+from firp.core.episodes import writer
 from firp.core.contract import CATEGORIES, CONTRACT_VERSION, JOINT_LOWER, JOINT_UPPER, N_CATEGORIES, PlanValidationError, make_plan
 from firp.core.episodes import (
     EpisodeDataset,
@@ -190,13 +190,13 @@ def test_existing_file_with_other_attrs_is_refused(tmp_path: Path) -> None:
 def test_crash_inside_part_write_leaves_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     parts = tmp_path / "parts"
     write_parts(parts, [0])
-    real = episodes._write_demo_group
+    real = writer._write_demo_group
 
     def crash_halfway(group: h5py.Group, record: EpisodeRecord, level: int) -> None:
         group.create_dataset("actions", data=record.actions)  # something is on disk already
         raise OSError("disk full (simulated)")
 
-    monkeypatch.setattr(episodes, "_write_demo_group", crash_halfway)
+    monkeypatch.setattr(writer, "_write_demo_group", crash_halfway)
     with pytest.raises(OSError, match="simulated"):
         write_episode_part(parts, 1, make_record(1))
     assert listing(parts) == ["demo_000000.h5"], "no partial part and no temp file"
@@ -205,7 +205,7 @@ def test_crash_inside_part_write_leaves_nothing(tmp_path: Path, monkeypatch: pyt
     # Overwriting an existing part that crashes keeps the old part intact.
     with pytest.raises(OSError):
         write_episode_part(parts, 0, make_record(99))
-    monkeypatch.setattr(episodes, "_write_demo_group", real)
+    monkeypatch.setattr(writer, "_write_demo_group", real)
     consolidate(parts, tmp_path / "ds.hdf5", DATASET_ATTRS)
     with EpisodeDataset(tmp_path / "ds.hdf5") as ds:
         assert_same_record(ds.episode(0), make_record(0))
@@ -218,7 +218,7 @@ def test_crash_inside_consolidate_keeps_old_file_and_parts(tmp_path: Path, monke
     hash_before = EpisodeDataset(out).content_hash()
     write_parts(parts, [2, 3])
 
-    real_copy = episodes._copy_demo
+    real_copy = writer._copy_demo
     calls = []
 
     def copy_then_crash(src: h5py.Group, dst: h5py.Group, name: str) -> None:
@@ -227,7 +227,7 @@ def test_crash_inside_consolidate_keeps_old_file_and_parts(tmp_path: Path, monke
             raise KeyboardInterrupt("killed (simulated)")
         real_copy(src, dst, name)
 
-    monkeypatch.setattr(episodes, "_copy_demo", copy_then_crash)
+    monkeypatch.setattr(writer, "_copy_demo", copy_then_crash)
     with pytest.raises(KeyboardInterrupt):
         consolidate(parts, out, DATASET_ATTRS)
     assert listing(tmp_path) == ["ds.hdf5", "parts"], "no temp file left next to the output"
@@ -235,7 +235,7 @@ def test_crash_inside_consolidate_keeps_old_file_and_parts(tmp_path: Path, monke
         assert ds.demo_names == ["demo_0", "demo_1"] and ds.content_hash() == hash_before
     assert completed_indices(out, parts) == {0, 1, 2, 3}
 
-    monkeypatch.setattr(episodes, "_copy_demo", real_copy)
+    monkeypatch.setattr(writer, "_copy_demo", real_copy)
     consolidate(parts, out, DATASET_ATTRS)
     with EpisodeDataset(out) as ds:
         assert len(ds) == 4

@@ -20,7 +20,7 @@ import pytest
 
 from firp import evaluate, tune
 from firp.bundle import load_bundle
-from firp.ensemble import EnsembleScorer
+from firp.serving import EnsembleScorer
 from firp.core.episodes import EpisodeDataset
 from firp.metrics import balanced_accuracy, choose_threshold, expected_calibration_error
 

@@ -4,7 +4,7 @@ import numpy as np
 import optuna
 
 from firp.bundle import load_bundle
-from firp.ensemble import EnsembleScorer
+from firp.serving import EnsembleScorer
 from firp.core.episodes import EpisodeDataset
 from firp.tune import SPACES, main, top_trials
 

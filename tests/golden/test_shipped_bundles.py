@@ -122,7 +122,7 @@ def _scene_and_candidates(worlds, seed: int) -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.mark.parametrize("seed", [100_000, 100_003])
 def test_the_fused_path_on_the_shipped_configuration_equals_the_members_forward_pass(worlds, shipped_stacking, seed):
-    from firp.ensemble import EnsembleScorer
+    from firp.serving import EnsembleScorer
 
     bundle = shipped_stacking
     cfg = bundle.configs[0]
@@ -130,7 +130,7 @@ def test_the_fused_path_on_the_shipped_configuration_equals_the_members_forward_
             cfg.geometry.enabled) == ("efficientnet_lite0", 84, 8, 0.05, True)
     image, plans = _scene_and_candidates(worlds, seed)
     fused = EnsembleScorer(bundle, strategy="fused")
-    assert {type(runner).__name__ for _, runner in fused._small} == {"_FusedFIRP"}
+    assert {type(runner).__name__ for _, runner in fused.units} == {"FusedFIRP"}
     got = fused.score(image, plans)
     with torch.inference_mode():  # the reference: each member's own forward pass, one by one
         feats = fused.encoder.backbone_features(image[None]).expand(len(plans), -1)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from firp.bundle import load_bundle
-from firp.ensemble import EnsembleScorer
+from firp.serving import EnsembleScorer
 from service.app import StartupError, create_app
 from service.settings import ServiceSettings
 from tests.firp.bundle_helpers import export_tiny, random_image

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from firp.bundle import load_bundle
-from firp.ensemble import EnsembleScorer
+from firp.serving import EnsembleScorer
 from tests.firp.bundle_helpers import random_image, valid_plans
 
 from .helpers import png_b64
