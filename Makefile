@@ -17,7 +17,7 @@ PYTEST_ARGS ?=
 # docker-compose (v1), which validates docker-compose.yml without a Docker engine (tests/test_compose.py).
 APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libosmesa6 docker-compose
 
-.PHONY: install system-deps test run clean
+.PHONY: install system-deps test run docs clean
 
 install: $(PIP_STAMP)
 
@@ -47,8 +47,12 @@ test: install
 	MUJOCO_GL=$(MUJOCO_GL) $(VENV_PY) -m pytest -q $(PYTEST_ARGS)
 
 run: install
-	MUJOCO_GL=$(MUJOCO_GL) $(VENV_PY) -m planner_client run --trials $(TRIALS)
+	MUJOCO_GL=$(MUJOCO_GL) $(VENV)/bin/firp run --trials $(TRIALS)
+
+# The documentation site (MkDocs, offline): docs/*.md -> site/; --strict fails on a broken link.
+docs: install
+	$(VENV)/bin/mkdocs build --strict --site-dir site
 
 clean:
-	rm -rf $(VENV) .make .pytest_cache *.egg-info
+	rm -rf $(VENV) .make .pytest_cache *.egg-info site
 	find . -path ./.git -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +

@@ -75,7 +75,10 @@ def main() -> None:
     scorers = {s: EnsembleScorer(bundle, strategy=s) for s in strategies}
     image = np.random.default_rng(0).integers(0, 256, (image_size, image_size, 3), dtype=np.uint8)
 
+    import sys
+
     results: dict[str, object] = {
+        "command": "python benchmarks/ensemble_scoring.py " + " ".join(sys.argv[1:]),
         "machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
         "load_avg_1min": os.getloadavg()[0], "torch": torch.__version__, "threads": args.threads,
         "members": args.members, "T": args.T, "config": config_name, "runs": {},

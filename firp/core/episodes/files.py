@@ -5,9 +5,28 @@ from __future__ import annotations
 import os
 import re
 import secrets
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from firp.core.episodes.layout import TMP_RE
+
+
+@contextmanager
+def atomic_file(final: Path) -> Iterator[Path]:
+    """Yield a temp path beside ``final`` to write; on success it is fsynced and renamed to ``final``
+    (and the directory fsynced), on any exception removed: ``final`` is always old-and-whole or
+    new-and-whole, never half-written."""
+    tmp = temp_path_for(final)
+    try:
+        yield tmp
+        fsync_path(tmp)
+        os.replace(tmp, final)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    fsync_path(final.parent)
+
 
 def temp_path_for(final: Path) -> Path:
     return final.with_name(f".{final.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")

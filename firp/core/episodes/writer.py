@@ -14,7 +14,7 @@ import h5py
 import numpy as np
 
 from firp.core.contract import CONTRACT_VERSION, PlanLimits
-from firp.core.episodes.files import fsync_path, remove_stale_temps, temp_path_for
+from firp.core.episodes.files import atomic_file, remove_stale_temps
 from firp.core.episodes.layout import (
     COMPUTED_DATA_ATTRS,
     GZIP_LEVEL,
@@ -82,18 +82,10 @@ def write_episode_part(
     rec = validate_record(record, limits)
     final = part_path(parts_dir, index)
     final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = temp_path_for(final)
-    try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["index"] = np.int64(index)
-            f.attrs["contract_version"] = CONTRACT_VERSION
-            _write_demo_group(f.create_group("demo"), rec, compression_level)
-        fsync_path(tmp)
-        os.replace(tmp, final)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    fsync_path(final.parent)
+    with atomic_file(final) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["index"] = np.int64(index)
+        f.attrs["contract_version"] = CONTRACT_VERSION
+        _write_demo_group(f.create_group("demo"), rec, compression_level)
     return final
 
 
@@ -199,32 +191,24 @@ def consolidate(
     if new:
         out.parent.mkdir(parents=True, exist_ok=True)
         remove_stale_temps(out.parent, re.compile(re.escape(out.name) + "$"))
-        tmp = temp_path_for(out)
-        try:
-            with h5py.File(tmp, "w") as dst:
-                data = dst.create_group("data")
-                if existing:
-                    with h5py.File(out, "r") as old:
-                        for idx in existing:
-                            _copy_demo(old["data"][demo_name(idx)], data, demo_name(idx))
-                for idx in new:
-                    path = part_path(parts, idx)
-                    with h5py.File(path, "r") as part:
-                        version = part.attrs.get("contract_version")
-                        if isinstance(version, bytes):
-                            version = version.decode("utf-8")
-                        if version != CONTRACT_VERSION:
-                            raise EpisodeValidationError(
-                                f"{path} was written under contract {version!r}, this code is {CONTRACT_VERSION!r}"
-                            )
-                        _copy_demo(part["demo"], data, demo_name(idx))
-                _finish_data_group(data, attrs)
-            fsync_path(tmp)
-            os.replace(tmp, out)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
-        fsync_path(out.parent)
+        with atomic_file(out) as tmp, h5py.File(tmp, "w") as dst:
+            data = dst.create_group("data")
+            if existing:
+                with h5py.File(out, "r") as old:
+                    for idx in existing:
+                        _copy_demo(old["data"][demo_name(idx)], data, demo_name(idx))
+            for idx in new:
+                path = part_path(parts, idx)
+                with h5py.File(path, "r") as part:
+                    version = part.attrs.get("contract_version")
+                    if isinstance(version, bytes):
+                        version = version.decode("utf-8")
+                    if version != CONTRACT_VERSION:
+                        raise EpisodeValidationError(
+                            f"{path} was written under contract {version!r}, this code is {CONTRACT_VERSION!r}"
+                        )
+                    _copy_demo(part["demo"], data, demo_name(idx))
+            _finish_data_group(data, attrs)
         rewritten = True
 
     if not keep_parts and parts.exists():
