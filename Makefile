@@ -6,6 +6,9 @@ PYTHON ?= python3
 VENV ?= .venv
 VENV_PY := $(VENV)/bin/python
 PIP_STAMP := $(VENV)/.installed-dev.stamp
+# The robosuite world's own environment (robosuite pins another MuJoCo and numpy < 2).
+RS_VENV ?= .venv-robosuite
+RS_STAMP := $(RS_VENV)/.installed.stamp
 APT_STAMP := .make/apt-deps.stamp
 # Headless rendering: EGL by default; `MUJOCO_GL=osmesa make test` overrides it.
 MUJOCO_GL ?= egl
@@ -17,7 +20,7 @@ PYTEST_ARGS ?=
 # docker-compose (v1), which validates docker-compose.yml without a Docker engine (tests/test_compose.py).
 APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libosmesa6 docker-compose
 
-.PHONY: install system-deps test run docs clean
+.PHONY: install robosuite-install system-deps test test-main test-robosuite run docs clean
 
 install: $(PIP_STAMP)
 
@@ -43,8 +46,21 @@ $(PIP_STAMP): pyproject.toml | $(APT_STAMP)
 	$(VENV)/bin/pip install -e ".[dev]"
 	@touch $@
 
-test: install
-	MUJOCO_GL=$(MUJOCO_GL) $(VENV_PY) -m pytest -q $(PYTEST_ARGS)
+$(RS_STAMP): pyproject.toml | $(APT_STAMP)
+	$(PYTHON) -m venv $(RS_VENV)
+	$(RS_VENV)/bin/pip install -e ".[robosuite-dev]"
+	@touch $@
+
+robosuite-install: $(RS_STAMP)
+
+# Both worlds' suites: the main environment's, then the robosuite world's in its own environment.
+test: test-main test-robosuite
+
+test-main: install
+	MUJOCO_GL=$(MUJOCO_GL) $(VENV_PY) -m pytest -q --ignore=tests/robosuite_worker $(PYTEST_ARGS)
+
+test-robosuite: robosuite-install
+	MUJOCO_GL=$(MUJOCO_GL) PYOPENGL_PLATFORM=$(MUJOCO_GL) $(RS_VENV)/bin/python -m pytest -q tests/robosuite_worker $(PYTEST_ARGS)
 
 run: install
 	MUJOCO_GL=$(MUJOCO_GL) $(VENV)/bin/firp run --trials $(TRIALS)
@@ -54,5 +70,5 @@ docs: install
 	$(VENV)/bin/mkdocs build --strict --site-dir site
 
 clean:
-	rm -rf $(VENV) .make .pytest_cache *.egg-info site
+	rm -rf $(VENV) $(RS_VENV) .make .pytest_cache *.egg-info site
 	find . -path ./.git -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +

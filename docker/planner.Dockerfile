@@ -21,6 +21,7 @@ WORKDIR /app
 COPY pyproject.toml ./
 COPY firp ./firp
 COPY firp_cli ./firp_cli
+COPY world_api ./world_api
 COPY sim_worker ./sim_worker
 COPY planner_client ./planner_client
 

@@ -22,6 +22,7 @@ WORKDIR /app
 COPY pyproject.toml ./
 COPY firp ./firp
 COPY firp_cli ./firp_cli
+COPY world_api ./world_api
 COPY sim_worker ./sim_worker
 
 RUN pip install -e ".[sim]"

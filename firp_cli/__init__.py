@@ -6,6 +6,7 @@
     firp evaluate   the evaluation protocol (python -m firp.evaluate)
     firp serve      the scoring service (python -m service)
     firp sim        the sim worker (python -m sim_worker serve)
+    firp robosuite  the robosuite worker, in its own environment (python -m robosuite_worker serve)
 
 This package sits above every part and imports each one only when its subcommand runs, so the
 torch-free subcommands (run, collect, sim) never load torch and ``firp --help`` loads nothing.
@@ -39,6 +40,8 @@ COMMANDS: dict[str, tuple[str, Callable[[list[str], str], int]]] = {
     "serve": ("the scoring service (FastAPI): POST /v1/score, the V2 inference protocol", _run("service.__main__")),
     "sim": ("the sim worker (FastAPI over MuJoCo): start episodes, execute plans",
             _run("sim_worker.__main__", prefix=("serve",))),
+    "robosuite": ("the robosuite worker: the same API over robosuite's tasks (run from .venv-robosuite)",
+                  _run("robosuite_worker.__main__", prefix=("serve",))),
 }
 
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim_worker.imaging import encode_png_b64
+from world_api.images import encode_png_b64
 from sim_worker.perception import PoseErrorConfig
 from sim_worker.worlds import TaskWorlds
 

@@ -1,26 +1,13 @@
-"""Settings of the sim worker service, from ``FIRP_SIM_*`` environment variables or CLI flags.
-
-The image size and pose error must match what the scoring model was trained on (the defaults are
-the datasets' defaults: 84 px, 3 mm / 3 deg), so they are settings of the worker, not of a request
--- except the pose error, which a request may override for experiments.
-"""
+"""Settings of the sim worker, from ``FIRP_SIM_*`` environment variables or CLI flags (see :mod:`world_api.settings`)."""
 
 from __future__ import annotations
 
-from pydantic import Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
+
+from world_api.settings import WorldSettings
+
+__all__ = ["SimWorkerSettings"]
 
 
-class SimWorkerSettings(BaseSettings):
+class SimWorkerSettings(WorldSettings):
     model_config = SettingsConfigDict(env_prefix="FIRP_SIM_", extra="ignore", frozen=True)
-
-    host: str = Field("127.0.0.1", description="interface to bind")
-    port: int = Field(8002, ge=0, le=65535, description="port (0: one the OS picks)")
-    image_size: int = Field(84, ge=16, le=512, description="camera image height = width, px")
-    pose_error_mm: float = Field(3.0, ge=0.0, allow_inf_nan=False,
-                                 description="default std of the block position estimates in the plane")
-    pose_error_deg: float = Field(3.0, ge=0.0, allow_inf_nan=False,
-                                  description="default std of the block yaw estimates")
-    max_episodes: int = Field(1024, ge=1, description="episodes kept at once; the oldest is evicted beyond")
-    episode_ttl_seconds: float = Field(3600.0, gt=0.0, allow_inf_nan=False,
-                                       description="an episode expires this long after it was created")

@@ -19,7 +19,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE = ROOT / "docker-compose.yml"
 DOCKERFILES = {"service": "docker/service.Dockerfile", "sim_worker": "docker/sim_worker.Dockerfile",
-               "planner": "docker/planner.Dockerfile"}
+               "robosuite_worker": "docker/robosuite_worker.Dockerfile", "planner": "docker/planner.Dockerfile"}
 GL_LIBS = "libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libosmesa6"
 
 
@@ -53,21 +53,22 @@ def test_services_build_from_the_dockerfiles(compose):
         assert (ROOT / DOCKERFILES[name]).is_file()
 
 
-PORT_VARIABLE = {"service": "FIRP_SERVICE_PORT", "sim_worker": "FIRP_SIM_PORT"}
+PORT_VARIABLE = {"service": "FIRP_SERVICE_PORT", "sim_worker": "FIRP_SIM_PORT", "robosuite_worker": "FIRP_ROBOSUITE_PORT"}
 
 
 def _port(compose: dict, name: str) -> str:
     return str(compose["services"][name]["environment"][PORT_VARIABLE[name]])
 
 
-@pytest.mark.parametrize("name", ["service", "sim_worker"])
+@pytest.mark.parametrize("name", ["service", "sim_worker", "robosuite_worker"])
 def test_servers_are_healthy_only_when_ready(compose, name):
     service = compose["services"][name]
     port = _port(compose, name)
     test = " ".join(service["healthcheck"]["test"])
     assert service["healthcheck"]["test"][0] == "CMD"
     assert f"http://127.0.0.1:{port}/readyz" in test
-    assert "start_period" in service["healthcheck"] and "profiles" not in service
+    assert "start_period" in service["healthcheck"]
+    assert ("profiles" in service) == (name == "robosuite_worker")  # robosuite's world only when asked for
 
 
 def test_planner_waits_for_healthy_services_and_is_behind_a_profile(compose):
@@ -89,7 +90,10 @@ def test_compose_sets_only_variables_the_settings_read(compose):
     from service.settings import ServiceSettings
     from sim_worker.settings import SimWorkerSettings
 
-    settings = {"service": ServiceSettings, "sim_worker": SimWorkerSettings, "planner": PlannerSettings}
+    from robosuite_worker.settings import RobosuiteSettings
+
+    settings = {"service": ServiceSettings, "sim_worker": SimWorkerSettings, "planner": PlannerSettings,
+                "robosuite_worker": RobosuiteSettings}
     for name, cls in settings.items():
         prefix = cls.model_config["env_prefix"]
         known = {prefix + field.upper() for field in cls.model_fields}
@@ -98,7 +102,8 @@ def test_compose_sets_only_variables_the_settings_read(compose):
     assert "FIRP_SERVICE_BUNDLE" in compose["services"]["service"]["environment"]
 
 
-@pytest.mark.parametrize("name, entry", [("service", '["firp", "serve"]'), ("sim_worker", '["firp", "sim"]')])
+@pytest.mark.parametrize("name, entry", [("service", '["firp", "serve"]'), ("sim_worker", '["firp", "sim"]'),
+                                         ("robosuite_worker", '["firp", "robosuite"]')])
 def test_servers_start_as_the_firp_command_configured_by_the_environment(compose, name, entry):
     assert re.search(rf"^ENTRYPOINT {re.escape(entry)}$", _dockerfile(name), re.M)
     assert "command" not in compose["services"][name]
@@ -114,7 +119,8 @@ def test_images_are_slim_and_run_as_a_non_root_user(compose, name):
     assert user.split(":")[0] not in ("root", "0")
 
 
-@pytest.mark.parametrize("name,extra", [("service", "service"), ("sim_worker", "sim"), ("planner", "planner")])
+@pytest.mark.parametrize("name,extra", [("service", "service"), ("sim_worker", "sim"), ("robosuite_worker", "robosuite"),
+                                        ("planner", "planner")])
 def test_images_install_like_the_readme(name, extra):
     steps = " && ".join(_run_steps(name))
     readme = (ROOT / "README.md").read_text()
@@ -126,7 +132,7 @@ def test_images_install_like_the_readme(name, extra):
         assert cpu_torch in steps and cpu_torch in readme
 
 
-@pytest.mark.parametrize("name", ["sim_worker", "planner"])
+@pytest.mark.parametrize("name", ["sim_worker", "robosuite_worker", "planner"])
 def test_mujoco_images_have_the_gl_libraries_and_egl(compose, name):
     assert any(GL_LIBS in step for step in _run_steps(name))
     assert re.search(r"MUJOCO_GL=egl", _dockerfile(name))

@@ -20,7 +20,8 @@ print("LOADED", "torch" in sys.modules, "mujoco" in sys.modules)
 """
 
 
-@pytest.mark.parametrize("command, torch_free", [("run", True), ("collect", True), ("sim", True), ("tune", False),
+@pytest.mark.parametrize("command, torch_free", [("run", True), ("collect", True), ("sim", True), ("robosuite", True),
+                                                 ("tune", False),
                                                  ("evaluate", False), ("serve", False)])
 def test_each_subcommand_shows_its_own_options_and_imports_only_its_part(command, torch_free):
     out = subprocess.run([sys.executable, "-c", PROBE.format(command=command)], capture_output=True, text=True,
@@ -40,7 +41,8 @@ def test_the_list_of_commands_and_the_errors(capsys):
     listed = capsys.readouterr().out
     assert all(f"  {name} " in listed for name in COMMANDS)
     assert main(["juggle"]) == 2
-    assert "unknown command 'juggle'; one of run, collect, tune, evaluate, serve, sim" in capsys.readouterr().err
+    assert "unknown command 'juggle'; one of run, collect, tune, evaluate, serve, sim, robosuite" in \
+        capsys.readouterr().err
 
 
 def test_the_console_script_is_installed():

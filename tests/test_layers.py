@@ -2,7 +2,8 @@
 
     firp.core        the shared, torch-free core: plan contract, episode format, error shape, CLI
                      argument types, bundle format -- imports no torch, no MuJoCo, no other part
-    sim_worker       our MuJoCo world: the core only (no torch, no planner, no method, no service)
+    world_api        the HTTP API every world serves: the core only (no torch, no MuJoCo, no world)
+    sim_worker       our MuJoCo world: the core and the world API (no torch, no planner, no method, no service)
     planner_client   the planner, the loop, dataset collection: the core and a world (no torch)
     firp (method)    model, training, bundles, serving path: the core (no MuJoCo, no world, no planner)
     service          the scoring service: the method and the core (no MuJoCo, no world, no planner)
@@ -25,12 +26,13 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("firp", "sim_worker", "planner_client", "service", "firp_cli", "experiments")
+PACKAGES = ("firp", "world_api", "sim_worker", "planner_client", "service", "firp_cli", "experiments")
 WORLD, PLANNER, SERVICE, METHOD = "sim_worker", "planner_client", "service", "firp"
 
 #: layer -> module prefixes it must never import ("firp" alone means the method: firp.core is allowed)
 FORBIDDEN = {
-    "firp.core": ("torch", "mujoco", WORLD, PLANNER, SERVICE, METHOD),
+    "firp.core": ("torch", "mujoco", WORLD, PLANNER, SERVICE, METHOD, "world_api"),
+    "world_api": ("torch", "mujoco", WORLD, PLANNER, SERVICE, METHOD),
     WORLD: ("torch", PLANNER, SERVICE, METHOD),
     PLANNER: ("torch", SERVICE, METHOD),
     METHOD: ("mujoco", WORLD, PLANNER, SERVICE),

@@ -20,9 +20,10 @@ with warnings.catch_warnings():  # starlette's TestClient on plain httpx: deprec
 
 from firp.core.contract import CATEGORY_INDEX, JOINT_UPPER, N_CATEGORIES
 from planner_client.tamp import PlannerConfig, TampPlanner
-from sim_worker.app import block_poses_json, create_app
+from sim_worker.app import create_app
+from sim_worker.backend import block_poses_json
 from planner_client.collect import episode_order, simulate_episode
-from sim_worker.imaging import decode_png_b64
+from world_api.images import decode_png_b64
 from sim_worker.perception import PoseErrorConfig
 from sim_worker.scene import RenderConfig, SceneLayout
 from sim_worker.settings import SimWorkerSettings
@@ -73,7 +74,9 @@ def test_health_and_readiness(client):
     assert client.get("/healthz").json() == {"status": "ok"}
     ready = client.get("/readyz")
     assert ready.status_code == 200
-    assert ready.json() == {"status": "ready", "tasks": ["stacking", "replacement"], "image_size": 84}
+    assert ready.json() == {"status": "ready", "world": "sim_worker", "tasks": ["stacking", "replacement"],
+                            "outcome_kinds": ["success", "not_at_rest", "wrong_height", "tilted", "off_block_below",
+                                              "not_inside", "unstable"], "image_size": 84}
 
 
 @pytest.mark.parametrize("task,seed", [("stacking", 11), ("replacement", 12)])

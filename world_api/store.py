@@ -1,4 +1,4 @@
-"""The worker's episodes: a bounded, expiring in-memory store.
+"""A world worker's episodes: a bounded, expiring in-memory store.
 
 Clients start an episode and then execute plans on it, possibly many times; a client that goes
 away must not make the worker grow without bound, so episodes expire after a TTL and, beyond a
@@ -15,7 +15,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Callable
 
-from sim_worker.worlds import EpisodeStart
+from world_api.backend import EpisodeStart
 
 
 @dataclass(frozen=True)

@@ -1,10 +1,11 @@
-"""Request and response bodies of the sim worker's HTTP API (pydantic v2).
+"""Request and response bodies of a world's HTTP API (pydantic v2).
 
 Requests are strict: a seed of ``5.0``, ``"5"`` or ``true`` is refused rather than coerced, and
 unknown fields are refused, so a client's typo fails loudly instead of silently using a default.
 The plan itself is only checked for being a list of rows here; its contract (width, length,
-one-hot, joint limits) is checked by ``firp.core.contract.validate_plan``, the one validator every part
-uses, so its field and rule names are the same everywhere.
+one-hot, joint limits) is checked by ``firp.core.contract.validate_plan``, the one validator every
+part uses, so its field and rule names are the same everywhere. A world's tasks are known only when
+its app is made, so :func:`episode_request_model` builds the request model that names them.
 """
 
 from __future__ import annotations
@@ -12,10 +13,8 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator
 from pydantic_core import PydanticCustomError
-
-from sim_worker.tasks import OUTCOME_KINDS, TASK_NAMES
 
 SEED_MAX = 2**63 - 1
 
@@ -24,21 +23,26 @@ class _Request(BaseModel):
     model_config = ConfigDict(strict=True, extra="forbid")
 
 
-class EpisodeRequest(_Request):
-    task: str = Field(description=f"one of {list(TASK_NAMES)}")
+class EpisodeRequestBase(_Request):
+    task: str
     seed: int = Field(ge=0, le=SEED_MAX, description="scene seed: the same seed gives the same episode")
     pose_error_mm: float | None = Field(None, ge=0.0, allow_inf_nan=False,
                                         description="override the worker's pose estimate error (std, mm)")
     pose_error_deg: float | None = Field(None, ge=0.0, allow_inf_nan=False,
                                          description="override the worker's yaw estimate error (std, deg)")
 
-    @field_validator("task")
-    @classmethod
-    def _known_task(cls, task: str) -> str:
-        if task not in TASK_NAMES:
+
+def episode_request_model(tasks: tuple[str, ...]) -> type[EpisodeRequestBase]:
+    """``EpisodeRequest`` for a world with these tasks: another task is a 422 ``task`` / ``unknown_task``."""
+    def known_task(cls, task: str) -> str:
+        if task not in tasks:
             raise PydanticCustomError("unknown_task", "unknown task '{task}'; expected one of {tasks}",
-                                      {"task": task, "tasks": list(TASK_NAMES)})
+                                      {"task": task, "tasks": list(tasks)})
         return task
+
+    return create_model("EpisodeRequest", __base__=EpisodeRequestBase,
+                        task=(str, Field(description=f"one of {list(tasks)}")),
+                        __validators__={"known_task": field_validator("task")(known_task)})
 
 
 class ExecuteRequest(_Request):
@@ -48,7 +52,7 @@ class ExecuteRequest(_Request):
 
 class BlockPose(BaseModel):
     position: list[float] = Field(description="x, y, z in metres, world frame")
-    yaw: float = Field(description="radians, modulo the cube's quarter turn")
+    yaw: float = Field(description="radians, about world z (modulo the object's symmetry)")
 
 
 class FinalBlockPose(BaseModel):
@@ -59,7 +63,7 @@ class FinalBlockPose(BaseModel):
 
 
 class Observation(BaseModel):
-    """Exactly the ``sim_worker.perception.observation`` dict the planner consumes."""
+    """What the planner consumes: pose estimates of the task's objects (``blocks``, by name) and the scene."""
 
     blocks: dict[str, BlockPose]
     scene: dict[str, Any]
@@ -96,8 +100,9 @@ class EpisodeResponse(BaseModel):
 class ExecuteResponse(BaseModel):
     episode_id: str
     success: bool
-    reason: str = Field(description="why, for people: names blocks and numbers")
-    kind: str = Field(description="the outcome's kind, for programs: one of " + ", ".join(OUTCOME_KINDS))
+    reason: str = Field(description="why, for people: names objects and numbers")
+    kind: str = Field(description="the outcome's kind, for programs: 'success' or what failed (the world's "
+                                  "names, listed by GET /readyz)")
     final_blocks: dict[str, FinalBlockPose]
     sim_seconds: float
     unstable: bool
@@ -120,5 +125,7 @@ class Health(BaseModel):
 
 class Ready(BaseModel):
     status: str
+    world: str
     tasks: list[str]
+    outcome_kinds: list[str]
     image_size: int

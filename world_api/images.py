@@ -12,9 +12,11 @@ import io
 import numpy as np
 from PIL import Image
 
+__all__ = ["decode_png_b64", "encode_png_b64"]
+
 
 def encode_png_b64(image: np.ndarray) -> str:
-    """An (H, W, 3) uint8 RGB image as base64 (ASCII) PNG."""
+    """An (H, W, 3) uint8 RGB image as base64 PNG: lossless, so a client gets the exact pixels a dataset holds."""
     image = np.asarray(image)
     if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
         raise ValueError(f"image: expected an (H, W, 3) uint8 array, got {image.shape} {image.dtype}")

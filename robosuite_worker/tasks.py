@@ -1,0 +1,102 @@
+"""The robosuite tasks firp plans for: the nearest robosuite has to the paper's three MimicGen columns.
+
+=============  ======================  ===  =============================================================
+task           robosuite environment   T    success (robosuite's own ``_check_success``)
+=============  ======================  ===  =============================================================
+stack_three    ``StackThree`` (ours,    80   the three cubes stand as one tower, none held
+               in robosuite's style)
+nut_assembly   ``NutAssemblySquare``   100  the square nut sits on its peg
+pick_place     ``PickPlace``           200  each of the four objects (milk, bread, cereal, can) is in its bin
+=============  ======================  ===  =============================================================
+
+T is the plan length at 4 FPS: the paper's for assembly (100) and pick & place (200), and 80 for
+stacking, as the paper's MimicGen stacking set. Each task says which objects the planner is told
+about (their poses are what perception estimates) and what else of the scene it needs (pegs, bins).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+__all__ = ["TASKS", "TaskSpec", "body_pose", "check_task"]
+
+
+def body_pose(env, body_id: int) -> tuple[np.ndarray, float]:
+    """A body's position and yaw about world z (from MuJoCo's w, x, y, z quaternion)."""
+    w, x, y, z = env.sim.data.body_xquat[body_id]
+    return np.array(env.sim.data.body_xpos[body_id], dtype=float), float(np.arctan2(2 * (w * z + x * y),
+                                                                                    1 - 2 * (y * y + z * z)))
+
+
+def _stack_objects(env) -> dict[str, int]:
+    return {cube.name: body_id for cube, body_id in zip(env.cubes, env.cube_body_ids)}
+
+
+def _stack_scene(env) -> dict:
+    from robosuite_worker.envs.stack_three import CUBES
+
+    return {"table_height": float(env.table_offset[2]), "cube_half": {name: half for name, half, _, _ in CUBES}}
+
+
+def _nut_objects(env) -> dict[str, int]:
+    return {"SquareNut": env.obj_body_id["SquareNut"]}
+
+
+def _nut_scene(env) -> dict:
+    return {"table_height": float(env.table_offset[2]),
+            "peg": [float(v) for v in env.sim.data.body_xpos[env.peg1_body_id]]}
+
+
+def _pick_place_objects(env) -> dict[str, int]:
+    return {obj.name: env.obj_body_id[obj.name] for obj in env.objects}
+
+
+def _pick_place_scene(env) -> dict:
+    return {"table_height": float(env.bin1_pos[2]), "bin1": [float(v) for v in env.bin1_pos],
+            "bin2": [float(v) for v in env.bin2_pos],
+            "targets": {obj.name: [float(v) for v in env.target_bin_placements[i]] for i, obj in enumerate(env.objects)}}
+
+
+def _stack_describe(env) -> str:
+    cubes, heights = env.tower()
+    return "cubes from low to high: " + ", ".join(f"{c.name} at {z - env.table_offset[2]:.3f} m" for c, z in
+                                                 zip(cubes, heights))
+
+
+def _nut_describe(env) -> str:
+    nut, _ = body_pose(env, env.obj_body_id["SquareNut"])
+    peg = env.sim.data.body_xpos[env.peg1_body_id]
+    return f"SquareNut {100 * np.linalg.norm(nut[:2] - peg[:2]):.1f} cm from its peg, {nut[2] - env.table_offset[2]:.3f} m up"
+
+
+def _pick_place_describe(env) -> str:
+    inside = [obj.name for i, obj in enumerate(env.objects) if env.objects_in_bins[i]]
+    return f"in their bins: {', '.join(inside) if inside else 'none'} of {len(env.objects)}"
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    name: str
+    env: str  # robosuite environment name
+    horizon: int  # T, plan steps at 4 FPS
+    objects: Callable  # env -> {object name: body id}: what perception reports
+    scene: Callable  # env -> the fixed scene the planner needs, JSON-able
+    describe: Callable  # env -> the end state in words, for the reason of a failure
+    env_kwargs: tuple = ()
+
+
+TASKS: dict[str, TaskSpec] = {
+    "stack_three": TaskSpec("stack_three", "StackThree", 80, _stack_objects, _stack_scene, _stack_describe),
+    "nut_assembly": TaskSpec("nut_assembly", "NutAssemblySquare", 100, _nut_objects, _nut_scene, _nut_describe),
+    "pick_place": TaskSpec("pick_place", "PickPlace", 200, _pick_place_objects, _pick_place_scene,
+                           _pick_place_describe),
+}
+
+
+def check_task(task: str) -> TaskSpec:
+    if task not in TASKS:
+        raise ValueError(f"task: unknown task {task!r}; expected one of {list(TASKS)}")
+    return TASKS[task]

@@ -1,0 +1,64 @@
+"""A world off the event loop, on one dedicated thread.
+
+Simulators' data is not thread-safe, and an EGL/OSMesa context made current in one thread cannot be
+made current in another while the first holds it, so a generic thread pool (which hands each call
+to any free thread) is not enough: every world is built, stepped and rendered on the same single
+thread. Requests queue behind each other there, which is also the right amount of parallelism for a
+worker that owns one or two cores (run more worker processes to scale).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Callable, TypeVar
+
+import numpy as np
+
+from world_api.backend import EpisodeStart, Outcome, WorldBackend
+from world_api.images import encode_png_b64
+
+R = TypeVar("R")
+
+
+@dataclass(frozen=True)
+class Execution:
+    outcome: Outcome
+    frames_b64: list[str] | None  # encoded on the world's thread too: it is CPU work per step
+
+
+class WorldRunner:
+    """Async front of a :class:`WorldBackend` that lives on its own thread."""
+
+    def __init__(self, backend: WorldBackend):
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="world")
+        self.backend = backend
+
+    async def _call(self, fn: Callable[..., R], *args: object) -> R:
+        return await asyncio.get_running_loop().run_in_executor(self._pool, functools.partial(fn, *args))
+
+    async def warm_up(self) -> None:
+        await self._call(self.backend.warm_up)
+
+    async def begin(self, task: str, seed: int, pose_error_mm: float, pose_error_deg: float) -> tuple[EpisodeStart, str]:
+        """The episode's initial state and its image as base64 PNG."""
+        def run() -> tuple[EpisodeStart, str]:
+            start = self.backend.begin(task, seed, pose_error_mm, pose_error_deg)
+            return start, encode_png_b64(start.image)
+        return await self._call(run)
+
+    async def execute(self, start: EpisodeStart, plan: np.ndarray, record_frames: bool) -> Execution:
+        def run() -> Execution:
+            outcome = self.backend.execute(start, plan, record_frames)
+            frames = [encode_png_b64(f) for f in outcome.frames] if outcome.frames is not None else None
+            return Execution(outcome, frames)
+        return await self._call(run)
+
+    async def close(self) -> None:
+        """Free the world (its GL contexts) on the thread that owns it, then stop the thread."""
+        try:
+            await self._call(self.backend.close)
+        finally:
+            self._pool.shutdown(wait=True)
