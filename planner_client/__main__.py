@@ -29,6 +29,9 @@ from firp.core.contract import DEFAULT_T, T_MAX, T_MIN
 EXIT_USAGE, EXIT_SERVICE, EXIT_INTERRUPTED = 2, 3, 130
 #: the tasks of our MuJoCo world (sim_worker.tasks.TASK_NAMES; not imported here, which would load MuJoCo)
 TASKS = ("stacking", "replacement")
+#: the robosuite world's tasks (robosuite_worker.tasks.TASKS; not imported here, which would need robosuite)
+ROBOSUITE_TASKS = ("stack_three", "nut_assembly", "pick_place")
+WORLDS = ("mujoco", "robosuite")
 
 
 def build_parser(prog: str = "python -m planner_client") -> argparse.ArgumentParser:
@@ -47,15 +50,20 @@ def add_run_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     settings = PlannerSettings()
     run = sub.add_parser("run", help="run planning trials end to end (the main job)")
     run.add_argument("--trials", type=int_in_range("--trials", 1, 100_000), default=50)
-    run.add_argument("--task", choices=TASKS, default="stacking")
+    run.add_argument("--world", choices=WORLDS, default="mujoco",
+                     help="mujoco: our world; robosuite: robosuite's tasks, the run continuing in the robosuite "
+                          "environment (.venv-robosuite) with the scoring service in this one")
+    run.add_argument("--task", choices=TASKS + ROBOSUITE_TASKS, default=None,
+                     help="default: stacking (mujoco), stack_three (robosuite)")
     run.add_argument("--seed", type=int, default=100_000, help="trial i uses scene seed SEED + i")
     run.add_argument("--max-iterations", type=int_in_range("--max-iterations", 1, 6), default=6,
-                     help="plans scored per trial at most, one per block order (the replanning budget; also the "
-                          "oracle's)")
+                     help="plans scored per trial at most, one per candidate: block order in our world, the "
+                          "planner's choice in robosuite's (the replanning budget; also the oracle's)")
     run.add_argument("--threshold", type=non_negative_float("--threshold"), default=None,
                      help="accept a plan when its score is >= this (default: the service's threshold)")
-    run.add_argument("--horizon", type=int_in_range("--horizon", T_MIN, T_MAX), default=DEFAULT_T,
-                     help=f"plan length T in steps at 4 FPS (default {DEFAULT_T}); must be in the bundle's T range")
+    run.add_argument("--horizon", type=int_in_range("--horizon", T_MIN, T_MAX), default=None,
+                     help=f"plan length T in steps at 4 FPS (our world; default {DEFAULT_T}); must be in the bundle's "
+                          "T range. robosuite's tasks have their own T")
     run.add_argument("--no-oracle", action="store_true", help="skip the oracle line (faster)")
     run.add_argument("--no-score", action="store_true",
                      help="debugging: TAMP alone and the oracle line only, no scoring service")
@@ -78,14 +86,18 @@ def add_run_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 def add_collect_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """The ``collect`` subcommand's flags."""
     c = sub.add_parser("collect", help="simulate labelled episodes into a robomimic-style HDF5 file (resumable)")
-    c.add_argument("--task", required=True, choices=TASKS)
+    c.add_argument("--world", choices=WORLDS, default="mujoco",
+                   help="mujoco: our world (tasks stacking, replacement); robosuite: robosuite's tasks (stack_three, "
+                        "nut_assembly, pick_place), run in the robosuite environment (.venv-robosuite)")
+    c.add_argument("--task", required=True, choices=TASKS + ROBOSUITE_TASKS)
     c.add_argument("--episodes", required=True, type=int_in_range("--episodes", 1, 1_000_000))
     c.add_argument("--out", required=True, type=Path, help="HDF5 file to write (parts kept beside it until done)")
     c.add_argument("--workers", type=int_in_range("--workers", 1, 256), default=max(1, os.cpu_count() or 1))
     c.add_argument("--seed-offset", type=int_in_range("--seed-offset", 0, 2**31 - 1), default=0,
                    help="episode i uses scene seed seed_offset + i")
-    c.add_argument("--horizon", "-T", type=int_in_range("--horizon", T_MIN, T_MAX), default=DEFAULT_T,
-                   help="plan length in steps at 4 FPS")
+    c.add_argument("--horizon", "-T", type=int_in_range("--horizon", T_MIN, T_MAX), default=None,
+                   help=f"plan length in steps at 4 FPS (our world; default {DEFAULT_T}); robosuite's tasks have "
+                        "their own T (80 stack_three, 100 nut_assembly, 200 pick_place)")
     c.add_argument("--image-size", type=int_in_range("--image-size", 16, 512), default=84)
     c.add_argument("--pose-error-mm", type=non_negative_float("--pose-error-mm"), default=3.0,
                    help="std of the planner's block position estimate error in the plane (0 = exact)")
@@ -95,19 +107,39 @@ def add_collect_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentPars
     return c
 
 
-def collect_command(args: argparse.Namespace) -> int:
-    from planner_client.collect import CollectConfig, collect
-    from sim_worker.perception import PoseErrorConfig
+def collect_command(args: argparse.Namespace, parser: argparse.ArgumentParser, argv: list[str]) -> int:
+    world_tasks = ROBOSUITE_TASKS if args.world == "robosuite" else TASKS
+    if args.task not in world_tasks:
+        parser.error(f"--task: {args.task!r} is not a task of the {args.world} world; one of {', '.join(world_tasks)}")
+    if args.world == "robosuite":
+        balance = _collect_robosuite(args, parser, argv)
+    else:
+        from planner_client.collect import CollectConfig, collect
+        from sim_worker.perception import PoseErrorConfig
 
-    error = PoseErrorConfig.from_mm_deg(args.pose_error_mm, args.pose_error_deg)
-    config = CollectConfig(task=args.task, episodes=args.episodes, out=args.out, workers=args.workers,
-                           seed_offset=args.seed_offset, horizon=args.horizon, image_size=args.image_size,
-                           pose_error=error)
-    balance = collect(config, progress=not args.no_progress)
+        error = PoseErrorConfig.from_mm_deg(args.pose_error_mm, args.pose_error_deg)
+        config = CollectConfig(task=args.task, episodes=args.episodes, out=args.out, workers=args.workers,
+                               seed_offset=args.seed_offset, horizon=args.horizon or DEFAULT_T,
+                               image_size=args.image_size, pose_error=error)
+        balance = collect(config, progress=not args.no_progress)
     print(f"{args.out}: {balance['total']} episodes, {balance['success']} success / {balance['failure']} failure "
           f"(success rate {balance['success_rate']:.3f}); {balance['new_episodes']} new in {balance['seconds']} s")
     print(json.dumps(balance))
     return 0
+
+
+def _collect_robosuite(args: argparse.Namespace, parser: argparse.ArgumentParser, argv: list[str]) -> dict:
+    """The robosuite collection, here if robosuite imports, else in the robosuite environment (exec)."""
+    if args.horizon is not None:
+        parser.error("--horizon: the robosuite world's tasks have a fixed T (80 stack_three, 100 nut_assembly, "
+                     "200 pick_place)")
+    _continue_in_robosuite_env(args, parser, argv)
+    from planner_client.collect_robosuite import RobosuiteCollectConfig, collect_robosuite
+
+    config = RobosuiteCollectConfig(task=args.task, episodes=args.episodes, out=args.out, workers=args.workers,
+                                    seed_offset=args.seed_offset, image_size=args.image_size,
+                                    pose_error_mm=args.pose_error_mm, pose_error_deg=args.pose_error_deg)
+    return collect_robosuite(config, progress=not args.no_progress)
 
 
 def _postfix(records: list[dict]) -> dict[str, str]:
@@ -126,14 +158,53 @@ def _postfix(records: list[dict]) -> dict[str, str]:
 
 def main(argv: list[str] | None = None, prog: str = "python -m planner_client") -> int:
     parser = build_parser(prog)
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = parser.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "egl")
     if args.command == "collect":
-        return collect_command(args)
-    return run_command(args, parser)
+        return collect_command(args, parser, argv)
+    return run_command(args, parser, argv)
 
 
-def run_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+def _world_planner(args: argparse.Namespace, parser: argparse.ArgumentParser, argv: list[str]):
+    """The world's planner; for robosuite's world the run continues in its environment (exec) if need be."""
+    world_tasks = ROBOSUITE_TASKS if args.world == "robosuite" else TASKS
+    args.task = args.task or world_tasks[0]
+    if args.task not in world_tasks:
+        parser.error(f"--task: {args.task!r} is not a task of the {args.world} world; one of {', '.join(world_tasks)}")
+    if args.world == "mujoco":
+        from planner_client.tamp import PlannerConfig, TampPlanner
+
+        return TampPlanner(PlannerConfig(horizon=args.horizon or DEFAULT_T))
+    if args.horizon is not None:
+        parser.error("--horizon: the robosuite world's tasks have a fixed T (80 stack_three, 100 nut_assembly, "
+                     "200 pick_place)")
+    _continue_in_robosuite_env(args, parser, argv)
+    from planner_client.robosuite_tamp import RobosuiteTampPlanner
+
+    return RobosuiteTampPlanner()
+
+
+def _continue_in_robosuite_env(args: argparse.Namespace, parser: argparse.ArgumentParser, argv: list[str]) -> None:
+    """Check the task is planned; unless robosuite imports here, re-run this command in its environment."""
+    from planner_client.robosuite_env import RobosuiteMissing, has_robosuite, robosuite_python
+    from planner_client.robosuite_tamp import PLANNED_TASKS
+
+    if args.task not in PLANNED_TASKS:
+        parser.error(f"--task: the robosuite planner does not plan {args.task!r} yet (it plans "
+                     f"{', '.join(PLANNED_TASKS)})")
+    if has_robosuite():
+        return
+    try:
+        python = robosuite_python()
+    except RobosuiteMissing as exc:
+        parser.error(str(exc))
+    print(f"{args.command} --world robosuite: running in the robosuite environment ({python})", file=sys.stderr)
+    os.execv(str(python), [str(python), "-m", "planner_client", *argv])
+
+
+def run_command(args: argparse.Namespace, parser: argparse.ArgumentParser, argv: list[str]) -> int:
+    planner = _world_planner(args, parser, argv)
     if args.resume and args.out is None:
         parser.error("--resume needs --out: the run file to continue")
     if args.bundle is not None and args.service and not args.no_score:
@@ -146,7 +217,6 @@ def run_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> in
     from planner_client.processes import ServerStartError
     from planner_client.report import markdown, summarise, write_report
     from planner_client.session import ServicePlan, open_services
-    from planner_client.tamp import PlannerConfig, TampPlanner
     from planner_client.transport import ServiceError
 
     out = args.out or Path(f"runs/{args.task}-{time.strftime('%Y%m%d-%H%M%S')}.jsonl")
@@ -156,13 +226,12 @@ def run_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> in
                        oracle=not args.no_oracle, out=out, resume=args.resume, threshold=args.threshold)
     plan = ServicePlan(task=args.task, out_dir=out.parent, sim_url=args.sim, service_url=args.service,
                        bundle=args.bundle, score=not args.no_score, api_key=args.api_key,
-                       ready_timeout=args.ready_timeout)
+                       ready_timeout=args.ready_timeout, world=args.world)
     try:
         plan.bundle_to_launch()
     except MissingBundle as exc:
         parser.error(str(exc))
     out.parent.mkdir(parents=True, exist_ok=True)
-    planner = TampPlanner(PlannerConfig(horizon=args.horizon))
     records = [r for r in read_records(out) if r["trial"] < args.trials] if args.resume else []
     if records:  # refuse other settings now, not after launching the services (the model is checked later)
         flags = {**run_identity(config, planner, None), "scoring": not args.no_score}

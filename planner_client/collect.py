@@ -131,29 +131,42 @@ def dataset_attrs(config: CollectConfig, layout: SceneLayout = SceneLayout()) ->
     }
 
 
-def collect(config: CollectConfig, progress: bool = True) -> dict:
-    """Collect ``config.episodes`` episodes into ``config.out`` (resuming), return the class balance."""
-    check_task(config.task)
-    config.out.parent.mkdir(parents=True, exist_ok=True)
-    done = completed_indices(config.out, config.parts_dir)
-    pending = [i for i in range(config.episodes) if i not in done]
+def run_collection(*, out: Path, parts_dir: Path, episodes: int, workers: int, initializer, initargs: tuple,
+                   collect_one, attrs: dict, desc: str, progress: bool = True) -> dict:
+    """Collect episodes ``0 .. episodes-1`` into ``out`` with a pool of worker processes (resuming).
+
+    ``initializer(*initargs)`` sets up each worker (its world and planner); ``collect_one(index)`` simulates
+    episode ``index``, writes its part file and returns ``(index, success, reason)``. Both must be
+    module-level functions (workers are spawned, never forked: no forked GL contexts). At the end the
+    parts are merged into ``out`` with the dataset ``attrs``; the class balance is returned.
+    """
+    out.parent.mkdir(parents=True, exist_ok=True)
+    done = completed_indices(out, parts_dir)
+    pending = [i for i in range(episodes) if i not in done]
     started = time.perf_counter()
     successes = 0
     if pending:
-        ctx = mp.get_context("spawn")  # no forked GL contexts
-        bar = tqdm(total=config.episodes, initial=config.episodes - len(pending), desc=f"collect {config.task}",
-                   unit="ep", disable=not progress)
-        workers = max(1, min(config.workers, len(pending)))
-        with ctx.Pool(workers, initializer=_init_worker, initargs=(config,)) as pool:
-            for n, (_, success, _) in enumerate(pool.imap_unordered(_collect_one, pending), start=1):
+        ctx = mp.get_context("spawn")
+        bar = tqdm(total=episodes, initial=episodes - len(pending), desc=desc, unit="ep", disable=not progress)
+        with ctx.Pool(max(1, min(workers, len(pending))), initializer=initializer, initargs=initargs) as pool:
+            for n, (_, success, _) in enumerate(pool.imap_unordered(collect_one, pending), start=1):
                 successes += success
                 bar.update(1)
                 bar.set_postfix(success=f"{successes / n:.2f}")
         bar.close()
-    if pending or not config.out.exists():
-        consolidate(config.parts_dir, config.out, dataset_attrs(config))
-    with EpisodeDataset(config.out) as ds:
+    if pending or not out.exists():
+        consolidate(parts_dir, out, attrs)
+    with EpisodeDataset(out) as ds:
         balance = ds.class_balance()
     balance["new_episodes"] = len(pending)
     balance["seconds"] = round(time.perf_counter() - started, 1)
     return balance
+
+
+def collect(config: CollectConfig, progress: bool = True) -> dict:
+    """Collect ``config.episodes`` episodes into ``config.out`` (resuming), return the class balance."""
+    check_task(config.task)
+    return run_collection(out=config.out, parts_dir=config.parts_dir, episodes=config.episodes,
+                          workers=config.workers, initializer=_init_worker, initargs=(config,),
+                          collect_one=_collect_one, attrs=dataset_attrs(config), desc=f"collect {config.task}",
+                          progress=progress)

@@ -41,7 +41,10 @@ class Launcher:
 
     def __init__(self, out_dir: Path, bundle: Path | None = None, *, sim: bool = True, ready_timeout: float = 180.0,
                  stop_timeout: float = 10.0, sim_args: Sequence[str] = (), service_args: Sequence[str] = (),
-                 env: Mapping[str, str] | None = None):
+                 env: Mapping[str, str] | None = None, sim_module: str = "sim_worker",
+                 sim_python: str = sys.executable, service_python: str = sys.executable):
+        """``sim_module`` is the world's worker (``sim_worker``, or ``robosuite_worker`` run by ``sim_python``
+        in the robosuite environment); ``service_python`` an interpreter with the service's torch."""
         if not sim and bundle is None:
             raise ValueError("nothing to launch: no sim worker (sim=False) and no bundle for the scoring service")
         log_dir = Path(out_dir) / "logs"
@@ -50,15 +53,15 @@ class Launcher:
         self._sim_server: ManagedServer | None = None
         if sim:
             self._sim_server = ManagedServer(
-                "sim_worker",
-                lambda port: [sys.executable, "-m", "sim_worker", "serve", "--host", "127.0.0.1", "--port",
+                sim_module,
+                lambda port: [sim_python, "-m", sim_module, "serve", "--host", "127.0.0.1", "--port",
                               str(port), *sim_args],
                 log_dir, **common)
         self.service_server: ManagedServer | None = None
         if bundle is not None:
             self.service_server = ManagedServer(
                 "service",
-                lambda port: [sys.executable, "-m", "service", "--host", "127.0.0.1", "--port", str(port),
+                lambda port: [service_python, "-m", "service", "--host", "127.0.0.1", "--port", str(port),
                               "--bundle", str(bundle), *service_args],
                 log_dir, **common)
 

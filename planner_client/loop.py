@@ -2,13 +2,14 @@
 
 One trial (scene seed ``seed + trial``):
 
-1. **TAMP + FIRP** -- plan with the first block order of :func:`block_orders`, score the plan with
-   the scoring service; while the score is below the threshold and fewer than ``max_iterations``
-   plans were scored, replan with the next block order and score again. The accepted plan -- or,
+1. **TAMP + FIRP** -- plan with the planner's first candidate (in our world the first block order of
+   :func:`block_orders`; in the robosuite world the default :class:`~planner_client.robosuite_tamp.Choice`),
+   score the plan with the scoring service; while the score is below the threshold and fewer than
+   ``max_iterations`` plans were scored, replan with the next candidate and score again. The accepted plan -- or,
    when the budget ran out, the *last* one scored, as the paper does -- is executed in the simulator.
 2. **TAMP alone** -- the planner's first plan, executed without scoring, on the same episode.
-3. **Oracle** -- the first block order (same order, same budget) whose plan succeeds when executed:
-   the ceiling of replanning over block orders within this budget.
+3. **Oracle** -- the first candidate (same order, same budget) whose plan succeeds when executed:
+   the ceiling of replanning over the planner's candidates within this budget.
 
 Every execution starts from the episode's initial state and the simulator is deterministic, so a
 plan is planned and executed at most once per trial and the three lines share executions (the
@@ -24,12 +25,11 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Protocol, Sequence
+from typing import Any, Hashable, Iterator, Protocol, Sequence
 
 import numpy as np
 
 from planner_client.backend import SimBackend, SimOutcome
-from planner_client.tamp import TampPlanner, block_orders
 
 
 @dataclass(frozen=True)
@@ -42,6 +42,20 @@ class RunConfig:
     out: Path = Path("runs/run.jsonl")
     resume: bool = False
     threshold: float | None = None  # None: the service's own threshold (each answer carries it)
+
+
+class Planner(Protocol):
+    """What the loop needs of a planner (:class:`planner_client.tamp.TampPlanner` for our world,
+    :class:`planner_client.robosuite_tamp.RobosuiteTampPlanner` for robosuite's): its candidates for a scene,
+    the default first, a plan per candidate, the plan length, and a JSON name per candidate for records."""
+
+    def candidates(self, task: str, observation: dict) -> list[Hashable]: ...
+
+    def plan(self, task: str, observation: dict, candidate: Any) -> Any: ...  # .actions: (T, 16)
+
+    def horizon(self, task: str) -> int: ...
+
+    def describe(self, candidate: Any) -> Any: ...
 
 
 class Scorer(Protocol):
@@ -73,11 +87,11 @@ def read_records(path: Path) -> list[dict]:
     return records
 
 
-def run_identity(config: RunConfig, planner: TampPlanner, model: dict | None) -> dict:
+def run_identity(config: RunConfig, planner: Planner, model: dict | None) -> dict:
     """What must not change between the parts of one run (``trials`` may grow: that extends it)."""
     identity = {
         "task": config.task, "seed": config.seed, "max_iterations": config.max_iterations,
-        "threshold": config.threshold, "horizon": planner.config.horizon, "oracle": config.oracle,
+        "threshold": config.threshold, "horizon": planner.horizon(config.task), "oracle": config.oracle,
         "scoring": model is not None,
         "model": None if model is None else {"name": model.get("name"), "version": model.get("version")},
     }
@@ -103,7 +117,7 @@ def check_resumable(records: list[dict], identity: dict, out: Path, ignore: tupl
                              "or choose another --out")
 
 
-def check_model(model: dict, config: RunConfig, planner: TampPlanner) -> None:
+def check_model(model: dict, config: RunConfig, planner: Planner) -> None:
     """A bundle for another task, or plans outside its T range, would be rejected at every call:
     fail before the first trial."""
     if model.get("task") not in (None, config.task):
@@ -111,7 +125,7 @@ def check_model(model: dict, config: RunConfig, planner: TampPlanner) -> None:
                             f"{model.get('task')!r}")
     contract = model.get("contract") or {}
     t_min, t_max = contract.get("t_min"), contract.get("t_max")
-    horizon = planner.config.horizon
+    horizon = planner.horizon(config.task)
     if t_min is not None and t_max is not None and not t_min <= horizon <= t_max:
         raise RunSetupError(f"--horizon {horizon}: the scoring service's bundle {model.get('name')!r} accepts plans of "
                             f"T in [{t_min}, {t_max}] only; pass --horizon in that range or use another bundle")
@@ -122,29 +136,29 @@ class TrialWork:
     """One trial's plans and executions, each made at most once, with the time each kind took."""
 
     sim: SimBackend[Any]
-    planner: TampPlanner
+    planner: Planner
     episode: Any
-    plans: dict[tuple[str, ...], np.ndarray] = field(default_factory=dict)
-    outcomes: dict[tuple[str, ...], SimOutcome] = field(default_factory=dict)
+    plans: dict[Hashable, np.ndarray] = field(default_factory=dict)
+    outcomes: dict[Hashable, SimOutcome] = field(default_factory=dict)
     timing: dict[str, float] = field(default_factory=lambda: {"start_s": 0.0, "plan_s": 0.0, "score_s": 0.0,
                                                               "execute_s": 0.0})
 
-    def plan(self, order: tuple[str, ...]) -> np.ndarray:
-        if order not in self.plans:
+    def plan(self, candidate: Hashable) -> np.ndarray:
+        if candidate not in self.plans:
             started = time.perf_counter()
-            self.plans[order] = self.planner.plan(self.episode.task, self.episode.observation, order).actions
+            self.plans[candidate] = self.planner.plan(self.episode.task, self.episode.observation, candidate).actions
             self.timing["plan_s"] += time.perf_counter() - started
-        return self.plans[order]
+        return self.plans[candidate]
 
-    def execute(self, order: tuple[str, ...]) -> SimOutcome:
-        """The outcome of ``order``'s plan; executed once -- the simulator is deterministic from the
+    def execute(self, candidate: Hashable) -> SimOutcome:
+        """The outcome of ``candidate``'s plan; executed once -- the simulator is deterministic from the
         episode's initial state, so a second execution would give the same label."""
-        if order not in self.outcomes:
-            plan = self.plan(order)
+        if candidate not in self.outcomes:
+            plan = self.plan(candidate)
             started = time.perf_counter()
-            self.outcomes[order] = self.sim.execute(self.episode, plan)
+            self.outcomes[candidate] = self.sim.execute(self.episode, plan)
             self.timing["execute_s"] += time.perf_counter() - started
-        return self.outcomes[order]
+        return self.outcomes[candidate]
 
 
 def accepts(score: float, threshold: float) -> bool:
@@ -162,9 +176,9 @@ def chosen_candidate(scores: Sequence[float], threshold: float) -> int:
     return len(scores) - 1
 
 
-def replan_until_accepted(work: TrialWork, scorer: Scorer, orders: list[tuple[str, ...]],
+def replan_until_accepted(work: TrialWork, scorer: Scorer, orders: list[Hashable],
                           threshold: float | None) -> dict:
-    """Score plans in ``orders`` until one reaches the threshold; the FIRP part of the record."""
+    """Score the plans of the candidates ``orders`` until one reaches the threshold; the FIRP part of the record."""
     scores: list[float] = []
     accepted = False
     answer: dict = {}
@@ -182,25 +196,25 @@ def replan_until_accepted(work: TrialWork, scorer: Scorer, orders: list[tuple[st
             break
     outcome = work.execute(order)  # the accepted plan, or the last one when the budget ran out
     return {"firp_success": bool(outcome.success), "firp_reason": outcome.reason, "firp_accepted": accepted,
-            "firp_iterations": len(scores), "firp_order": list(order), "scores": scores,
+            "firp_iterations": len(scores), "firp_order": work.planner.describe(order), "scores": scores,
             "threshold": used_threshold, "service_threshold": float(answer["threshold"])}
 
 
-def oracle_line(work: TrialWork, orders: list[tuple[str, ...]]) -> dict:
-    """The first order whose plan succeeds in simulation (executions already made are reused)."""
+def oracle_line(work: TrialWork, orders: list[Hashable]) -> dict:
+    """The first candidate whose plan succeeds in simulation (executions already made are reused)."""
     for examined, order in enumerate(orders, start=1):
         if work.execute(order).success:
-            return {"oracle_success": True, "oracle_order": list(order), "oracle_executions": examined}
+            return {"oracle_success": True, "oracle_order": work.planner.describe(order), "oracle_executions": examined}
     return {"oracle_success": False, "oracle_order": None, "oracle_executions": len(orders)}
 
 
-def run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: TampPlanner, scorer: Scorer | None,
+def run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: Planner, scorer: Scorer | None,
               identity: dict) -> dict:
     """One trial's record (see the module docstring for what is run)."""
     started = time.perf_counter()
     seed = config.seed + trial
-    orders = block_orders()[: config.max_iterations]
     episode = sim.start(config.task, seed)
+    orders = planner.candidates(config.task, episode.observation)[: config.max_iterations]
     work = TrialWork(sim, planner, episode)
     work.timing["start_s"] = time.perf_counter() - started
     record: dict = {"trial": trial, "seed": seed, "task": config.task, "run": identity}
@@ -210,7 +224,7 @@ def run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: Tamp
     record.update(tamp_success=bool(tamp.success), tamp_reason=tamp.reason)
     if scorer is not None:
         # same plan, same initial state, deterministic simulator: TAMP alone reuses FIRP's execution
-        record["tamp_reused_firp_execution"] = record["firp_order"] == list(orders[0])
+        record["tamp_reused_firp_execution"] = record["firp_order"] == planner.describe(orders[0])
     if config.oracle:
         record.update(oracle_line(work, orders))
     record["executions"] = len(work.outcomes)
@@ -222,7 +236,7 @@ def run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: Tamp
     return record
 
 
-def run_trials(config: RunConfig, sim: SimBackend[Any], planner: TampPlanner,
+def run_trials(config: RunConfig, sim: SimBackend[Any], planner: Planner,
                scorer: Scorer | None = None) -> Iterator[dict]:
     """Run the pending trials, appending one JSON line per finished trial; yields each record.
 

@@ -63,9 +63,15 @@ def _cell(line: dict | None) -> tuple[str, str]:
     return f"{line['successes']}/{line['trials']}", f"{100 * line['rate']:.1f}%"
 
 
+def _candidates(run: dict) -> str:
+    """What the loop replans over: block orders in our world, the planner's choices in robosuite's."""
+    return "block orders" if run.get("task") in ("stacking", "replacement", None) else "planner choices"
+
+
 def _labels(summary: dict) -> dict[str, str]:
     budget = summary["run"].get("max_iterations")
-    oracle = f"oracle (first of {budget} block orders that succeeds in simulation)" if budget else "oracle"
+    oracle = (f"oracle (first of {budget} {_candidates(summary['run'])} that succeeds in simulation)" if budget
+              else "oracle")
     return {"tamp": "TAMP alone", "tamp_firp": "TAMP + FIRP", "oracle": oracle}
 
 
@@ -83,7 +89,7 @@ def _settings_line(summary: dict) -> str:
     seeds = f"{first}..{first + summary['trials'] - 1}" if first is not None and summary["trials"] else "none"
     budget = run.get("max_iterations")
     if not run.get("scoring", True):
-        firp = f"no scoring (--no-score), oracle over {budget} block orders"
+        firp = f"no scoring (--no-score), oracle over {budget} {_candidates(run)}"
     else:
         threshold = run.get("threshold")
         thresholds = ", ".join(f"{t:g}" for t in summary.get("thresholds", []))

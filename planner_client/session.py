@@ -32,6 +32,16 @@ class ServicePlan:
     score: bool = True
     api_key: str | None = None
     ready_timeout: float = 120.0
+    world: str = "mujoco"  # or "robosuite": which world's worker a launched sim is
+
+    def launcher_options(self) -> dict:
+        """How the launched services start: the world's worker, and the service under an interpreter with
+        torch (the robosuite environment has none: there the main environment's runs it)."""
+        if self.world != "robosuite":
+            return {}
+        from planner_client.robosuite_env import service_python
+
+        return {"sim_module": "robosuite_worker", "service_python": str(service_python())}
 
     def bundle_to_launch(self) -> Path | None:
         """The bundle the launched service loads, checked to exist; None if no service is launched.
@@ -73,7 +83,7 @@ def open_services(plan: ServicePlan) -> Iterator[Services]:
         launcher = None
         if sim is None or bundle is not None:
             launcher = stack.enter_context(Launcher(plan.out_dir, bundle=bundle, sim=sim is None,
-                                                    ready_timeout=plan.ready_timeout))
+                                                    ready_timeout=plan.ready_timeout, **plan.launcher_options()))
         if sim is None:
             sim = launcher.sim()
             stack.callback(sim.close)

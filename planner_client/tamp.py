@@ -19,7 +19,7 @@ from itertools import permutations
 import numpy as np
 
 from firp.core.contract import CATEGORY_INDEX, DEFAULT_T, FINGER_CLOSED, FINGER_OPEN, FPS, make_plan
-from planner_client.ik import IKConfig, PandaIK, rotation_yaw
+from planner_client.ik import ArmIK, IKConfig, PandaIK, rotation_yaw
 from sim_worker.robot import HOME_ARM_QPOS
 
 BLOCK_NAMES_DEFAULT = ("red", "green", "blue")
@@ -27,13 +27,9 @@ QUARTER = np.pi / 2
 
 
 @dataclass(frozen=True)
-class PlannerConfig:
-    """The planner's hand-written conditions and timing (seconds are nominal, before resampling)."""
+class PickPlaceTiming:
+    """How long each phase of a pick-and-place lasts (nominal seconds, before the plan is resampled to T)."""
 
-    horizon: int = DEFAULT_T
-    clearance_z: float = 0.17  # TCP height for transport
-    grasp_z_offset: float = 0.0  # TCP height relative to the block centre when grasping
-    release_gap: float = 0.005  # the block is released this far above its resting height
     speed: float = 0.25  # m/s for transport segments
     min_transport_s: float = 1.0
     descend_s: float = 1.25
@@ -42,6 +38,17 @@ class PlannerConfig:
     lower_s: float = 1.25
     release_s: float = 0.75
     retreat_s: float = 0.75
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """The planner's hand-written conditions and timing."""
+
+    horizon: int = DEFAULT_T
+    clearance_z: float = 0.17  # TCP height for transport
+    grasp_z_offset: float = 0.0  # TCP height relative to the block centre when grasping
+    release_gap: float = 0.005  # the block is released this far above its resting height
+    timing: PickPlaceTiming = field(default_factory=PickPlaceTiming)
     replacement_slots: tuple[tuple[float, float], ...] = ((-0.045, -0.035), (0.045, -0.035), (0.0, 0.045))
     ik: IKConfig = field(default_factory=IKConfig)
 
@@ -87,12 +94,74 @@ def block_orders(names: tuple[str, ...] = BLOCK_NAMES_DEFAULT) -> list[tuple[str
     return list(permutations(names))
 
 
+def pick_and_place(cfg: PickPlaceTiming, start: np.ndarray, pick: tuple[np.ndarray, np.ndarray, float],
+                   place: tuple[np.ndarray, np.ndarray, float]) -> list[Segment]:
+    """The eight TCP segments of one pick-and-place, the seven categories in their natural order.
+
+    ``pick`` and ``place`` are (above point, point, yaw): the hand goes from ``start`` above the object,
+    descends open, closes, lifts, carries it above the place, lowers, opens and rises."""
+    def transport(a: np.ndarray, b: np.ndarray) -> float:
+        return max(cfg.min_transport_s, float(np.linalg.norm(b - a)) / cfg.speed)
+
+    (above_grasp, grasp, grasp_yaw), (above_release, release, release_yaw) = pick, place
+    steps = [("move_before_grasp", transport(start, above_grasp), above_grasp, grasp_yaw, FINGER_OPEN),
+             ("move_before_grasp", cfg.descend_s, grasp, grasp_yaw, FINGER_OPEN),
+             ("grasp", cfg.grasp_s, grasp, grasp_yaw, FINGER_CLOSED),
+             ("hold", cfg.lift_s, above_grasp, grasp_yaw, FINGER_CLOSED),
+             ("move", transport(above_grasp, above_release), above_release, release_yaw, FINGER_CLOSED),
+             ("hold_before_release", cfg.lower_s, release, release_yaw, FINGER_CLOSED),
+             ("release", cfg.release_s, release, release_yaw, FINGER_OPEN),
+             ("move_after_release", cfg.retreat_s, above_release, release_yaw, FINGER_OPEN)]
+    return [Segment(category, duration, np.asarray(pos, dtype=float), yaw, finger)
+            for category, duration, pos, yaw, finger in steps]
+
+
+def trajectory(segments: list[Segment], start_pos: np.ndarray, start_yaw: float, horizon: int, ik: ArmIK,
+               q_start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The plan's ``horizon`` steps along ``segments``: category indices ``(T,)`` and joint targets ``(T, 9)``.
+
+    All segments are scaled uniformly so that the plan spans exactly T steps at 4 FPS; within a segment
+    the TCP position, yaw and finger opening move linearly from the previous segment's end, and IK
+    (warm-started from the previous step) gives each step's arm joints.
+    """
+    durations = np.array([seg.duration for seg in segments])
+    ends = np.cumsum(durations) * (horizon / FPS) / durations.sum()
+    starts = np.concatenate([[0.0], ends[:-1]])
+    categories = np.empty(horizon, dtype=np.int64)
+    targets = np.empty((horizon, 9))
+    seg_start_state = [(start_pos, start_yaw, FINGER_OPEN)] + [(seg.pos, seg.yaw, seg.finger) for seg in segments[:-1]]
+    q = q_start
+    for t in range(horizon):
+        time = (t + 1) / FPS  # the target is reached at the end of step t
+        i = min(int(np.searchsorted(ends, time - 1e-9)), len(segments) - 1)
+        seg = segments[i]
+        a = np.clip((time - starts[i]) / (ends[i] - starts[i]), 0.0, 1.0)
+        p0, y0, f0 = seg_start_state[i]
+        q = ik.solve(p0 + a * (seg.pos - p0), y0 + a * (seg.yaw - y0), q)
+        categories[t] = CATEGORY_INDEX[seg.category]
+        targets[t, :7] = q
+        targets[t, 7:] = f0 + a * (seg.finger - f0)
+    return categories, targets
+
+
 class TampPlanner:
     """Plans pick-and-place sequences for ``stacking`` and ``replacement`` from an observation."""
 
     def __init__(self, config: PlannerConfig = PlannerConfig()):
         self.config = config
         self.ik = PandaIK(config.ik)
+
+    # -- what the trial loop replans over (planner_client.loop.Planner) ---------------------------
+    def candidates(self, task: str, observation: dict) -> list[tuple[str, ...]]:
+        """The block orders the loop tries, the default first (the same for every scene)."""
+        return block_orders()
+
+    def horizon(self, task: str) -> int:
+        return self.config.horizon
+
+    @staticmethod
+    def describe(order: tuple[str, ...]) -> list[str]:
+        return list(order)
 
     # -- symbolic level: which block goes where ------------------------------------------------
     def _place_targets(self, task: str, observation: dict, order: tuple[str, ...]) -> list[tuple[np.ndarray, float]]:
@@ -121,20 +190,12 @@ class TampPlanner:
 
     # -- geometric level: the TCP path -----------------------------------------------------------
     def _segments(self, task: str, observation: dict, order: tuple[str, ...], rng: np.random.Generator | None,
-                  start_pos: np.ndarray, start_yaw: float) -> tuple[list[Segment], list[float], list[list[float]]]:
+                  start_pos: np.ndarray) -> tuple[list[Segment], list[float], list[list[float]]]:
         cfg = self.config
         blocks = observation["blocks"]
         segments: list[Segment] = []
-        pos, yaw = start_pos, start_yaw
+        pos = start_pos
         grasp_yaws, place_list = [], []
-
-        def add(category: str, duration: float, new_pos: np.ndarray, new_yaw: float, finger: float) -> None:
-            nonlocal pos, yaw
-            segments.append(Segment(category, duration, np.asarray(new_pos, dtype=float), new_yaw, finger))
-            pos, yaw = np.asarray(new_pos, dtype=float), new_yaw
-
-        def transport_time(a: np.ndarray, b: np.ndarray) -> float:
-            return max(cfg.min_transport_s, float(np.linalg.norm(b - a)) / cfg.speed)
 
         for name, (place_pos, place_block_yaw) in zip(self._moved_blocks(task, order),
                                                      self._place_targets(task, observation, order)):
@@ -149,15 +210,9 @@ class TampPlanner:
             place_yaw = nearest_equivalent(place_block_yaw, grasp_yaw)
             release_pos = place_pos + np.array([0.0, 0.0, cfg.release_gap + cfg.grasp_z_offset])
             above_place = np.array([release_pos[0], release_pos[1], cfg.clearance_z])
-
-            add("move_before_grasp", transport_time(pos, above_block), above_block, grasp_yaw, FINGER_OPEN)
-            add("move_before_grasp", cfg.descend_s, grasp_pos, grasp_yaw, FINGER_OPEN)
-            add("grasp", cfg.grasp_s, grasp_pos, grasp_yaw, FINGER_CLOSED)
-            add("hold", cfg.lift_s, above_block, grasp_yaw, FINGER_CLOSED)
-            add("move", transport_time(above_block, above_place), above_place, place_yaw, FINGER_CLOSED)
-            add("hold_before_release", cfg.lower_s, release_pos, place_yaw, FINGER_CLOSED)
-            add("release", cfg.release_s, release_pos, place_yaw, FINGER_OPEN)
-            add("move_after_release", cfg.retreat_s, above_place, place_yaw, FINGER_OPEN)
+            segments += pick_and_place(cfg.timing, pos, (above_block, grasp_pos, grasp_yaw),
+                                       (above_place, release_pos, place_yaw))
+            pos = above_place
             grasp_yaws.append(grasp_yaw)
             place_list.append([*release_pos.tolist(), place_yaw])
         return segments, grasp_yaws, place_list
@@ -174,29 +229,7 @@ class TampPlanner:
         rng = None if planner_seed is None else np.random.default_rng(planner_seed)
         q = HOME_ARM_QPOS.copy()
         start_pos, start_rot = self.ik.forward(q)
-        segments, grasp_yaws, places = self._segments(task, observation, order, rng, start_pos, rotation_yaw(start_rot))
+        segments, grasp_yaws, places = self._segments(task, observation, order, rng, start_pos)
 
-        # time-resample: scale all segments uniformly so that the plan spans exactly T steps
-        durations = np.array([s.duration for s in segments])
-        ends = np.cumsum(durations) * (cfg.horizon / FPS) / durations.sum()
-        starts = np.concatenate([[0.0], ends[:-1]])
-        categories = np.empty(cfg.horizon, dtype=np.int64)
-        targets = np.empty((cfg.horizon, 9))
-        prev_pos, prev_yaw, prev_finger = start_pos, rotation_yaw(start_rot), FINGER_OPEN
-        seg_start_state = [(prev_pos, prev_yaw, prev_finger)]
-        for s in segments[:-1]:
-            seg_start_state.append((s.pos, s.yaw, s.finger))
-        for t in range(cfg.horizon):
-            time = (t + 1) / FPS  # the target is reached at the end of step t
-            i = min(int(np.searchsorted(ends, time - 1e-9)), len(segments) - 1)
-            seg = segments[i]
-            a = np.clip((time - starts[i]) / (ends[i] - starts[i]), 0.0, 1.0)
-            p0, y0, f0 = seg_start_state[i]
-            pos = p0 + a * (seg.pos - p0)
-            yaw = y0 + a * (seg.yaw - y0)
-            finger = f0 + a * (seg.finger - f0)
-            q = self.ik.solve(pos, yaw, q)
-            categories[t] = CATEGORY_INDEX[seg.category]
-            targets[t, :7] = q
-            targets[t, 7:] = finger
+        categories, targets = trajectory(segments, start_pos, rotation_yaw(start_rot), cfg.horizon, self.ik, q)
         return Plan(make_plan(categories, targets), order, grasp_yaws, places, segments)

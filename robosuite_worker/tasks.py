@@ -35,10 +35,19 @@ def _stack_objects(env) -> dict[str, int]:
     return {cube.name: body_id for cube, body_id in zip(env.cubes, env.cube_body_ids)}
 
 
+def _robot(env) -> dict:
+    from robosuite_worker.robot import robot_base
+
+    robot = env.robots[0]
+    return {"robot_base": robot_base(env),
+            "robot_start": [float(v) for v in env.sim.data.qpos[robot._ref_joint_pos_indexes]]}
+
+
 def _stack_scene(env) -> dict:
     from robosuite_worker.envs.stack_three import CUBES
 
-    return {"table_height": float(env.table_offset[2]), "cube_half": {name: half for name, half, _, _ in CUBES}}
+    return {"table_height": float(env.table_offset[2]), "cube_half": {name: half for name, half, _, _ in CUBES},
+            **_robot(env)}
 
 
 def _nut_objects(env) -> dict[str, int]:
@@ -47,7 +56,7 @@ def _nut_objects(env) -> dict[str, int]:
 
 def _nut_scene(env) -> dict:
     return {"table_height": float(env.table_offset[2]),
-            "peg": [float(v) for v in env.sim.data.body_xpos[env.peg1_body_id]]}
+            "peg": [float(v) for v in env.sim.data.body_xpos[env.peg1_body_id]], **_robot(env)}
 
 
 def _pick_place_objects(env) -> dict[str, int]:
@@ -57,7 +66,8 @@ def _pick_place_objects(env) -> dict[str, int]:
 def _pick_place_scene(env) -> dict:
     return {"table_height": float(env.bin1_pos[2]), "bin1": [float(v) for v in env.bin1_pos],
             "bin2": [float(v) for v in env.bin2_pos],
-            "targets": {obj.name: [float(v) for v in env.target_bin_placements[i]] for i, obj in enumerate(env.objects)}}
+            "targets": {obj.name: [float(v) for v in env.target_bin_placements[i]] for i, obj in enumerate(env.objects)},
+            **_robot(env)}
 
 
 def _stack_describe(env) -> str:

@@ -31,6 +31,7 @@ class Outcome:
     sim_seconds: float
     unstable: bool
     frames: np.ndarray | None = field(default=None, repr=False)  # (T, H, W, 3) uint8, frame t before step t
+    states: np.ndarray | None = field(default=None, repr=False)  # (T, S) the world's state before step t (with frames)
 
 
 class WorldBackend(Protocol):

@@ -1,0 +1,157 @@
+"""The robosuite planner's choices meeting robosuite's physics: success per choice, rescues, failure modes.
+
+Two parts, both written to one JSON (and printed as tables):
+
+* **dataset** (``--data``, a ``firp collect --world robosuite`` file; no simulation): the success rate
+  of each factor of the drawn choices (the tower's order, each grasp's pair of faces, each grasp's
+  height), and the failure modes read from the end states: which moved cube did not end on the tower.
+* **survey** (``--seeds N``, simulation; run in the robosuite environment): on scene seeds never used
+  for datasets (``--seed`` onwards), the planner's default choice; when it fails, the other choices
+  in the loop's order until one succeeds -- how often the default succeeds, and how many of its
+  failures another choice rescues (within the loop's budget of 6, and within all choices).
+
+    .venv-robosuite/bin/python -m experiments.robosuite_choices --data data/robosuite_stack_three.h5 \\
+        --seeds 50 --workers 2 --out docs/results/robosuite_stack_three_choices.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import platform
+import sys
+import time
+from collections import Counter, defaultdict
+from pathlib import Path
+
+from tqdm import tqdm
+
+TABLE_CONTACT = 0.01  # a cube whose centre is within this of its resting height on the table is "on the table"
+LOOP_BUDGET = 6
+
+
+def failure_mode(order: list[str], final_blocks: dict, scene: dict, kind: str) -> str:
+    """What did not end on the tower, from the end state: ``middle`` / ``top`` cube left on the table,
+    ``tower`` (all three off the table, yet the check failed: tilted or still touching the hand), or ``unstable``."""
+    if kind == "unstable":
+        return "unstable"
+    table, half = scene["table_height"], scene["cube_half"]
+    on_table = [name for name in order[1:]
+                if final_blocks[name]["position"][2] - table < half[name] + TABLE_CONTACT]
+    if not on_table:
+        return "tower stands incomplete (tilted, or the check's contacts fail)"
+    return " and ".join(f"{'middle' if name == order[1] else 'top'} cube on the table" for name in on_table)
+
+
+def analyse_dataset(path: Path) -> dict:
+    from firp.core.episodes import EpisodeDataset
+
+    factors: dict[str, Counter] = defaultdict(Counter)
+    totals: dict[str, Counter] = defaultdict(Counter)
+    modes: Counter = Counter()
+    default = Counter()
+    with EpisodeDataset(path) as ds:
+        n = len(ds)
+        for i in range(n):
+            attrs, success = ds.demo_attrs(i), ds.success(i)
+            keys = {"order": "-".join(attrs["block_order"]),
+                    "grasp axes": "".join(map(str, attrs["grasp_axes"])),
+                    "grasp heights (middle, top)": attrs["choice"].split(":")[2]}
+            for factor, value in keys.items():
+                totals[factor][value] += 1
+                factors[factor][value] += success
+            if attrs["is_default_choice"]:
+                default["n"] += 1
+                default["success"] += success
+            if not success:
+                modes[failure_mode(attrs["block_order"], attrs["final_blocks"], attrs["scene"], attrs["kind"])] += 1
+        balance = ds.class_balance()
+    return {
+        "episodes": n, "class_balance": balance,
+        "success_by_factor": {factor: {value: {"episodes": totals[factor][value],
+                                               "success_rate": round(factors[factor][value] / totals[factor][value], 3)}
+                                       for value in sorted(totals[factor])} for factor in totals},
+        "failure_modes": dict(modes.most_common()),
+        "default_choice_episodes": dict(default),
+    }
+
+
+_state: dict = {}
+
+
+def _init(mm: float, deg: float) -> None:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from planner_client.robosuite_tamp import RobosuiteTampPlanner
+    from robosuite_worker.world import RobosuiteWorld
+
+    _state.update(world=RobosuiteWorld(image_size=32), planner=RobosuiteTampPlanner(), mm=mm, deg=deg)
+
+
+def _survey_seed(args: tuple[str, int, int]) -> dict:
+    task, seed, max_tries = args
+    world, planner = _state["world"], _state["planner"]
+    start = world.begin(task, seed, _state["mm"], _state["deg"])
+    tried = []
+    for choice in planner.choices(task, start.observation)[:max_tries]:
+        outcome = world.execute(start, planner.plan(task, start.observation, choice).actions, False)
+        tried.append({"choice": choice.label(), "success": outcome.success, "kind": outcome.kind,
+                      "mode": None if outcome.success else failure_mode(list(choice.order), outcome.final_blocks,
+                                                                        start.observation["scene"], outcome.kind)})
+        if outcome.success:
+            break
+    return {"seed": seed, "tried": tried}
+
+
+def survey(task: str, seeds: int, first_seed: int, workers: int, max_tries: int, mm: float, deg: float) -> dict:
+    started = time.perf_counter()
+    jobs = [(task, first_seed + i, max_tries) for i in range(seeds)]
+    with mp.get_context("spawn").Pool(workers, initializer=_init, initargs=(mm, deg)) as pool:
+        rows = sorted(tqdm(pool.imap_unordered(_survey_seed, jobs), total=seeds, desc=f"survey {task}"),
+                      key=lambda r: r["seed"])
+    failed = [r for r in rows if not r["tried"][0]["success"]]
+    rescued_in_budget = sum(any(t["success"] for t in r["tried"][:LOOP_BUDGET]) for r in failed)
+    rescued = sum(r["tried"][-1]["success"] for r in failed)
+    return {
+        "seeds": [first_seed, first_seed + seeds - 1], "pose_error": {"mm": mm, "deg": deg},
+        "default_success_rate": round(1 - len(failed) / seeds, 3),
+        "default_failures": len(failed),
+        f"rescued_within_{LOOP_BUDGET}_choices": rescued_in_budget,
+        f"rescued_within_{max_tries}_choices": rescued,
+        "default_failure_modes": dict(Counter(r["tried"][0]["mode"] for r in failed).most_common()),
+        "seconds": round(time.perf_counter() - started, 1), "rows": rows,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--task", default="stack_three", choices=["stack_three"])
+    parser.add_argument("--data", type=Path, default=None, help="a robosuite dataset to analyse (no simulation)")
+    parser.add_argument("--seeds", type=int, default=0, help="scene seeds to survey in simulation (0: none)")
+    parser.add_argument("--seed", type=int, default=200_000, help="first survey seed (datasets use 0..)")
+    parser.add_argument("--max-tries", type=int, default=24, help="choices tried per failing seed at most")
+    parser.add_argument("--workers", type=int, default=max(1, os.cpu_count() or 1))
+    parser.add_argument("--pose-error-mm", type=float, default=3.0)
+    parser.add_argument("--pose-error-deg", type=float, default=3.0)
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args(argv)
+    if args.data is None and args.seeds <= 0:
+        parser.error("--data or --seeds: nothing to measure")
+    result: dict = {"command": "python -m experiments.robosuite_choices " + " ".join(argv or sys.argv[1:]),
+                    "task": args.task, "machine": {"python": platform.python_version(), "cpus": os.cpu_count()}}
+    if args.data is not None:
+        result["dataset"] = {"path": str(args.data), **analyse_dataset(args.data)}
+        print(json.dumps({k: v for k, v in result["dataset"].items()}, indent=1))
+    if args.seeds > 0:
+        result["survey"] = survey(args.task, args.seeds, args.seed, args.workers, args.max_tries,
+                                  args.pose_error_mm, args.pose_error_deg)
+        print(json.dumps({k: v for k, v in result["survey"].items() if k != "rows"}, indent=1))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,170 @@
+"""A TAMP-style planner for the robosuite world's tasks: top-down picks and places, IK on robosuite's Panda.
+
+Like :mod:`planner_client.tamp` for our world: symbolic pick-and-place steps with the seven categories
+in their natural order per moved object, TCP waypoints at a clearance height, top-down grasps across
+a pair of the object's faces, place targets from the pose estimates, a small release gap, joint
+targets by IK on robosuite's own Panda model (:mod:`robosuite_worker.robot`), time-resampled to the
+task's T. Its conditions are those of a sensible first version and no more; which object goes first
+and which pair of faces each grasp takes are its *choices* (:class:`Choice`), and the loop replans
+over them as it replans over block orders in our world.
+
+Tasks so far: ``stack_three`` -- the order of the tower (6), a pair of faces per moved cube (4) and a
+grasp height per moved cube (4: at the centre, or ``high_grasp_below_top`` under the top face, which
+keeps the fingertips clear of the tower but holds the cube by less of its side): 96 choices, the
+default (alphabetical order, least wrist turn, centre grasps) first and the other orders next.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from itertools import permutations, product
+
+import numpy as np
+
+from firp.core.contract import make_plan
+from planner_client.ik import ArmIK, ArmModel, IKConfig
+from planner_client.tamp import QUARTER, PickPlaceTiming, Segment, nearest_equivalent, pick_and_place, trajectory
+
+__all__ = ["PLANNED_TASKS", "Choice", "RobosuitePlan", "RobosuitePlannerConfig", "RobosuiteTampPlanner", "TASK_HORIZONS"]
+
+#: T of each task (robosuite_worker.tasks.TASKS, repeated here: the planner does not import robosuite's world)
+TASK_HORIZONS = {"stack_three": 80, "nut_assembly": 100, "pick_place": 200}
+#: the tasks this planner plans so far
+PLANNED_TASKS = ("stack_three",)
+
+
+@dataclass(frozen=True)
+class RobosuitePlannerConfig:
+    clearance: float = 0.15  # TCP height above the table for transport
+    release_gap: float = 0.005  # an object is released this far above its resting height
+    high_grasp_below_top: float = 0.008  # a "high" grasp closes this far below the object's top face
+    timing: PickPlaceTiming = field(default_factory=PickPlaceTiming)
+    ik: IKConfig = field(default_factory=IKConfig)
+
+
+#: grasp heights a choice can take, per moved object
+GRASP_HEIGHTS = ("centre", "high")
+
+
+@dataclass(frozen=True)
+class Choice:
+    """The planner's choices for one plan: which objects in which order, and per grasp which pair of
+    faces and how high on them."""
+
+    order: tuple[str, ...]
+    axes: tuple[int, ...]  # per moved object: 0 = the faces needing the least wrist turn, 1 = the other pair
+    heights: tuple[int, ...] = ()  # per moved object, index into GRASP_HEIGHTS (missing: centre)
+
+    def height(self, k: int) -> str:
+        return GRASP_HEIGHTS[self.heights[k]] if k < len(self.heights) else "centre"
+
+    def label(self) -> str:
+        heights = "".join("h" if h else "c" for h in self.heights)
+        return "-".join(self.order) + ":" + "".join(map(str, self.axes)) + (f":{heights}" if heights else "")
+
+
+@dataclass
+class RobosuitePlan:
+    actions: np.ndarray  # (T, 16)
+    choice: Choice
+    grasp_yaws: list[float]
+    place_targets: list[list[float]]
+    segments: list[Segment] = field(repr=False, default_factory=list)
+
+
+class RobosuiteTampPlanner:
+    """Plans the robosuite world's tasks from an episode's observation."""
+
+    def __init__(self, config: RobosuitePlannerConfig = RobosuitePlannerConfig()):
+        self.config = config
+        self._ik: dict[tuple[float, ...], ArmIK] = {}
+
+    def ik(self, base: list[float]) -> ArmIK:
+        """IK on robosuite's Panda standing at ``base`` (one solver per base, built on first use)."""
+        key = tuple(round(v, 9) for v in base)
+        if key not in self._ik:
+            from robosuite_worker.robot import panda_kinematics
+
+            k = panda_kinematics()
+            arm = ArmModel(k.model, k.tcp_site, k.qpos, k.dof, k.home, k.finger_axis, np.asarray(base, dtype=float))
+            self._ik[key] = ArmIK(arm, self.config.ik)
+        return self._ik[key]
+
+    # -- choices -----------------------------------------------------------------------------------
+    def choices(self, task: str, observation: dict) -> list[Choice]:
+        """Every choice for this scene, the default first (the loop walks this list)."""
+        if task == "stack_three":
+            names = tuple(sorted(observation["blocks"]))
+            orders = list(permutations(names))
+            return [Choice(order, axes, heights) for heights in product((0, 1), repeat=2)
+                    for axes in product((0, 1), repeat=2) for order in orders]
+        raise ValueError(f"task: the robosuite planner does not plan {task!r} yet")
+
+    # -- what the trial loop replans over (planner_client.loop.Planner) ---------------------------------
+    def candidates(self, task: str, observation: dict) -> list[Choice]:
+        return self.choices(task, observation)
+
+    def horizon(self, task: str) -> int:
+        return TASK_HORIZONS[task]
+
+    @staticmethod
+    def describe(choice: Choice) -> str:
+        return choice.label()
+
+    # -- plans ---------------------------------------------------------------------------------------
+    def plan(self, task: str, observation: dict, choice: Choice | None = None) -> RobosuitePlan:
+        choice = choice or self.choices(task, observation)[0]
+        scene = observation["scene"]
+        ik = self.ik(scene["robot_base"])
+        q = np.asarray(scene["robot_start"], dtype=float)
+        start_pos, start_rot = ik.forward(q)
+        from planner_client.ik import rotation_yaw
+
+        start_yaw = rotation_yaw(start_rot, ik.arm.finger_axis)
+        if task == "stack_three":
+            moves = self._stack_moves(observation, choice, start_yaw)
+        else:
+            raise ValueError(f"task: the robosuite planner does not plan {task!r} yet")
+        segments, yaws, places = self._segments(moves, start_pos)
+        categories, targets = trajectory(segments, start_pos, start_yaw, TASK_HORIZONS[task], ik, q)
+        return RobosuitePlan(make_plan(categories, targets), choice, yaws, places, segments)
+
+    def _stack_moves(self, observation: dict, choice: Choice, neutral_yaw: float
+                     ) -> list[tuple[np.ndarray, float, np.ndarray, float]]:
+        """(grasp point, grasp yaw, release point, release yaw) of the hand per moved cube: onto the tower so far.
+
+        A grasp's yaw is taken modulo the half turn closest to the hand's starting yaw (``neutral_yaw``),
+        which keeps the wrist inside its range."""
+        blocks, half = observation["blocks"], observation["scene"]["cube_half"]
+        base = choice.order[0]
+        top = np.asarray(blocks[base]["position"], dtype=float) + [0.0, 0.0, half[base]]  # the tower's top face
+        base_yaw = float(blocks[base]["yaw"])
+        moves = []
+        for k, (name, axis) in enumerate(zip(choice.order[1:], choice.axes)):
+            pos, yaw = np.asarray(blocks[name]["position"], dtype=float), float(blocks[name]["yaw"])
+            grasp = pos.copy()
+            if choice.height(k) == "high":
+                grasp[2] += half[name] - self.config.high_grasp_below_top
+            options = sorted((nearest_equivalent(yaw + j * QUARTER, neutral_yaw, np.pi) for j in (0, 1)),
+                             key=lambda option: abs(option - neutral_yaw))
+            grasp_yaw = options[axis]
+            # the hand releases where it holds the cube: its centre's target plus the grasp's height on it
+            place = np.array([top[0], top[1], top[2] + half[name] + self.config.release_gap + grasp[2] - pos[2]])
+            moves.append((grasp, grasp_yaw, place, nearest_equivalent(base_yaw, grasp_yaw)))
+            top = np.array([top[0], top[1], top[2] + 2 * half[name]])
+        return moves
+
+    def _segments(self, moves, start_pos: np.ndarray) -> tuple[list[Segment], list[float], list]:
+        segments: list[Segment] = []
+        pos = np.asarray(start_pos, dtype=float)
+        yaws, places = [], []
+        for grasp, grasp_yaw, release, release_yaw in moves:
+            height = max(grasp[2], release[2]) + self.config.clearance
+            above_grasp = np.array([grasp[0], grasp[1], height])
+            above_release = np.array([release[0], release[1], height])
+            segments += pick_and_place(self.config.timing, pos, (above_grasp, grasp, grasp_yaw),
+                                       (above_release, release, release_yaw))
+            pos = above_release
+            yaws.append(grasp_yaw)
+            places.append([*release.tolist(), release_yaw])
+        return segments, yaws, places

@@ -1,0 +1,62 @@
+"""The robosuite planner (planner_client.robosuite_tamp) on robosuite's own Panda: valid plans, grasps where
+perception says the cubes are, and towers that stand in the world."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from firp.core.contract import CATEGORIES, PICK_PLACE_SEQUENCE, split_plan, validate_plan
+from planner_client.ik import rotation_yaw
+from planner_client.robosuite_tamp import Choice, RobosuiteTampPlanner
+
+
+@pytest.fixture(scope="module")
+def planner():
+    return RobosuiteTampPlanner()
+
+
+def _runs(categories: np.ndarray) -> list[str]:
+    return [CATEGORIES[k] for k, _ in itertools.groupby(categories.tolist())]
+
+
+def _first_steps(categories: np.ndarray, name: str) -> list[int]:
+    steps = np.flatnonzero(categories == CATEGORIES.index(name))
+    return [int(run[0]) for run in np.split(steps, np.flatnonzero(np.diff(steps) > 1) + 1)]
+
+
+def test_choices_cover_every_order_axis_and_height_with_the_default_first(world, planner):
+    start = world.begin("stack_three", 0, 3.0, 3.0)
+    choices = planner.choices("stack_three", start.observation)
+    assert len(choices) == 6 * 4 * 4 == len({c.label() for c in choices})
+    assert choices[0] == Choice(("cubeA", "cubeB", "cubeC"), (0, 0), (0, 0))
+    assert len({c.order for c in choices[:6]}) == 6  # the loop's first replans try the other orders
+
+
+@pytest.mark.parametrize(("seed", "index"), [(0, 0), (1, 1), (2, 95)])
+def test_plans_follow_the_contract_and_grasp_where_the_cubes_are_estimated(world, planner, seed, index):
+    start = world.begin("stack_three", seed, 3.0, 3.0)
+    choice = planner.choices("stack_three", start.observation)[index]
+    plan = planner.plan("stack_three", start.observation, choice)
+    half = start.observation["scene"]["cube_half"]
+    categories, targets = split_plan(validate_plan(plan.actions))
+    assert plan.actions.shape == (80, 16) and _runs(categories) == list(PICK_PLACE_SEQUENCE) * 2
+    ik = planner.ik(start.observation["scene"]["robot_base"])
+    blocks = start.observation["blocks"]
+    for k, (grasp, release) in enumerate(zip(_first_steps(categories, "grasp"), _first_steps(categories, "release"))):
+        tcp, rot = ik.forward(targets[grasp, :7])
+        name = choice.order[k + 1]
+        lift = half[name] - planner.config.high_grasp_below_top if choice.height(k) == "high" else 0.0
+        np.testing.assert_allclose(tcp, np.add(blocks[name]["position"], [0, 0, lift]), atol=1e-3)
+        assert abs(rotation_yaw(rot, ik.arm.finger_axis) - plan.grasp_yaws[k]) < 1e-2
+        at_release, _ = ik.forward(targets[release, :7])
+        np.testing.assert_allclose(at_release, plan.place_targets[k][:3], atol=1e-3)
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_the_default_plan_builds_the_tower_in_the_world(world, planner, seed):
+    start = world.begin("stack_three", seed, 3.0, 3.0)
+    outcome = world.execute(start, planner.plan("stack_three", start.observation).actions, record_frames=False)
+    assert (outcome.success, outcome.kind) == (True, "success"), outcome.reason
