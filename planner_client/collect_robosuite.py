@@ -18,9 +18,11 @@ import numpy as np
 from firp.core.contract import FPS
 from firp.core.episodes import EpisodeRecord, write_episode_part
 from planner_client.collect import run_collection
+from planner_client.ik import IKFailure
 from planner_client.robosuite_tamp import TASK_HORIZONS, Choice, RobosuiteTampPlanner
 
-__all__ = ["CHOICE_STREAM", "RobosuiteCollectConfig", "collect_robosuite", "episode_choice", "simulate_episode"]
+__all__ = ["CHOICE_STREAM", "RobosuiteCollectConfig", "collect_robosuite", "episode_choice", "planned_choice",
+           "simulate_episode"]
 
 CHOICE_STREAM = 13  # separates the choice draw from the scene and perception streams
 
@@ -52,13 +54,29 @@ def episode_choice(seed: int, choices: list[Choice]) -> Choice:
     return choices[int(rng.integers(len(choices)))]
 
 
+def planned_choice(planner: RobosuiteTampPlanner, task: str, observation: dict, seed: int
+                   ) -> tuple[Choice, object, int]:
+    """The episode's choice, its plan and how many drawn choices were unreachable: when the arm cannot reach
+    a choice's poses (IK fails), the next one of a permutation drawn from the same seed is taken -- still
+    determined by the seed alone."""
+    choices = planner.choices(task, observation)
+    first = episode_choice(seed, choices)
+    rng = np.random.default_rng(np.random.SeedSequence([seed, CHOICE_STREAM, 1]))
+    for skipped, choice in enumerate([first, *(choices[i] for i in rng.permutation(len(choices))
+                                               if choices[i] != first)]):
+        try:
+            return choice, planner.plan(task, observation, choice), skipped
+        except IKFailure:
+            continue
+    raise IKFailure(f"seed {seed}: no choice of the {task} planner is reachable in this scene")
+
+
 def simulate_episode(world, planner: RobosuiteTampPlanner, task: str, seed: int, pose_error_mm: float,
                      pose_error_deg: float, record_frames: bool = True) -> EpisodeRecord:
     """One labelled episode: the seeded scene, the plan for its drawn choice, the execution."""
     start = world.begin(task, seed, pose_error_mm, pose_error_deg)
     choices = planner.choices(task, start.observation)
-    choice = episode_choice(seed, choices)
-    plan = planner.plan(task, start.observation, choice)
+    choice, plan, skipped = planned_choice(planner, task, start.observation, seed)
     outcome = world.execute(start, plan.actions, record_frames)
     horizon = len(plan.actions)
     frames = outcome.frames if outcome.frames is not None else np.zeros((horizon, 1, 1, 3), np.uint8)
@@ -66,7 +84,7 @@ def simulate_episode(world, planner: RobosuiteTampPlanner, task: str, seed: int,
     return EpisodeRecord(
         frames=frames, actions=plan.actions.astype(np.float32), states=states, success=bool(outcome.success),
         attrs={"task": task, "seed": int(seed), "choice": choice.label(), "choice_index": choices.index(choice),
-               "is_default_choice": choice == choices[0], "block_order": list(choice.order),
+               "is_default_choice": choice == choices[0], "unreachable_choices_skipped": skipped, "block_order": list(choice.order),
                "grasp_axes": list(choice.axes), "pose_estimates": start.observation["blocks"],
                "scene": start.observation["scene"], "grasp_yaws": plan.grasp_yaws,
                "place_targets": plan.place_targets, "kind": outcome.kind, "reason": outcome.reason,

@@ -30,6 +30,7 @@ from typing import Any, Hashable, Iterator, Protocol, Sequence
 import numpy as np
 
 from planner_client.backend import SimBackend, SimOutcome
+from planner_client.ik import IKFailure
 
 
 @dataclass(frozen=True)
@@ -131,6 +132,17 @@ def check_model(model: dict, config: RunConfig, planner: Planner) -> None:
                             f"T in [{t_min}, {t_max}] only; pass --horizon in that range or use another bundle")
 
 
+@dataclass(frozen=True)
+class NoPlan:
+    """The outcome of a candidate the planner could not plan (the arm cannot reach its poses): a failure
+    that costs no execution."""
+
+    reason: str
+    success: bool = False
+    kind: str = "no_plan"
+    sim_seconds: float = 0.0
+
+
 @dataclass
 class TrialWork:
     """One trial's plans and executions, each made at most once, with the time each kind took."""
@@ -138,23 +150,32 @@ class TrialWork:
     sim: SimBackend[Any]
     planner: Planner
     episode: Any
-    plans: dict[Hashable, np.ndarray] = field(default_factory=dict)
+    plans: dict[Hashable, np.ndarray | None] = field(default_factory=dict)
     outcomes: dict[Hashable, SimOutcome] = field(default_factory=dict)
+    unplannable: dict[Hashable, str] = field(default_factory=dict)  # candidate -> why it has no plan
     timing: dict[str, float] = field(default_factory=lambda: {"start_s": 0.0, "plan_s": 0.0, "score_s": 0.0,
                                                               "execute_s": 0.0})
 
-    def plan(self, candidate: Hashable) -> np.ndarray:
+    def plan(self, candidate: Hashable) -> np.ndarray | None:
+        """The candidate's plan, or None when the planner cannot plan it (the reason is kept)."""
         if candidate not in self.plans:
             started = time.perf_counter()
-            self.plans[candidate] = self.planner.plan(self.episode.task, self.episode.observation, candidate).actions
+            try:
+                self.plans[candidate] = self.planner.plan(self.episode.task, self.episode.observation,
+                                                          candidate).actions
+            except IKFailure as exc:
+                self.plans[candidate] = None
+                self.unplannable[candidate] = f"no plan: {exc}"
             self.timing["plan_s"] += time.perf_counter() - started
         return self.plans[candidate]
 
     def execute(self, candidate: Hashable) -> SimOutcome:
         """The outcome of ``candidate``'s plan; executed once -- the simulator is deterministic from the
         episode's initial state, so a second execution would give the same label."""
+        plan = self.plan(candidate)
+        if plan is None:
+            return NoPlan(self.unplannable[candidate])
         if candidate not in self.outcomes:
-            plan = self.plan(candidate)
             started = time.perf_counter()
             self.outcomes[candidate] = self.sim.execute(self.episode, plan)
             self.timing["execute_s"] += time.perf_counter() - started
@@ -183,9 +204,12 @@ def replan_until_accepted(work: TrialWork, scorer: Scorer, orders: list[Hashable
     accepted = False
     answer: dict = {}
     used_threshold = float("nan")
-    order = orders[0]
-    for order in orders:
-        plan = work.plan(order)
+    order = orders[0]  # the last candidate scored
+    for candidate in orders:
+        plan = work.plan(candidate)
+        if plan is None:  # nothing to score: the next candidate
+            continue
+        order = candidate
         started = time.perf_counter()
         answer = scorer.score(work.episode.image_b64, plan, work.episode.task)
         work.timing["score_s"] += time.perf_counter() - started
@@ -194,6 +218,8 @@ def replan_until_accepted(work: TrialWork, scorer: Scorer, orders: list[Hashable
         if accepts(scores[-1], used_threshold):
             accepted = True
             break
+    if not scores:
+        raise IKFailure(f"seed {work.episode.seed}: the planner could plan none of its {len(orders)} candidates")
     outcome = work.execute(order)  # the accepted plan, or the last one when the budget ran out
     return {"firp_success": bool(outcome.success), "firp_reason": outcome.reason, "firp_accepted": accepted,
             "firp_iterations": len(scores), "firp_order": work.planner.describe(order), "scores": scores,
@@ -228,6 +254,8 @@ def run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: Plan
     if config.oracle:
         record.update(oracle_line(work, orders))
     record["executions"] = len(work.outcomes)
+    if work.unplannable:
+        record["unplannable"] = {str(planner.describe(c)): why for c, why in work.unplannable.items()}
     delete = getattr(sim, "delete", None)  # a sim worker keeps episodes until they expire: free it now
     if delete is not None:
         delete(episode)

@@ -55,8 +55,22 @@ def _nut_objects(env) -> dict[str, int]:
 
 
 def _nut_scene(env) -> dict:
-    return {"table_height": float(env.table_offset[2]),
-            "peg": [float(v) for v in env.sim.data.body_xpos[env.peg1_body_id]], **_robot(env)}
+    """The peg and the nut's model (what a planner knows of the object): its handle in the nut's frame, its
+    half thickness; the peg's top and its yaw about world z (its square section fits the nut's hole)."""
+    nut = env.nuts[0]
+    body = env.obj_body_id[nut.name]
+    position, yaw = body_pose(env, body)
+    handle_world = env.sim.data.site_xpos[env.sim.model.site_name2id(nut.important_sites["handle"])] - position
+    c, s = np.cos(-yaw), np.sin(-yaw)
+    handle = [float(c * handle_world[0] - s * handle_world[1]), float(s * handle_world[0] + c * handle_world[1])]
+    peg = env.sim.data.body_xpos[env.peg1_body_id]
+    peg_geoms = [g for g in range(env.sim.model.ngeom) if env.sim.model.geom_bodyid[g] == env.peg1_body_id]
+    top = max(float(env.sim.data.geom_xpos[g][2] + env.sim.model.geom_size[g][2]) for g in peg_geoms)
+    _, peg_yaw = body_pose(env, env.peg1_body_id)
+    thickness = [float(env.sim.model.geom_size[g][2]) for g in range(env.sim.model.ngeom)
+                 if env.sim.model.geom_bodyid[g] == body]
+    return {"table_height": float(env.table_offset[2]), "peg": [float(v) for v in peg], "peg_top": top,
+            "peg_yaw": peg_yaw, "handle_offset": handle, "nut_half_height": max(thickness), **_robot(env)}
 
 
 def _pick_place_objects(env) -> dict[str, int]:
@@ -99,7 +113,11 @@ class TaskSpec:
 
 
 TASKS: dict[str, TaskSpec] = {
-    "stack_three": TaskSpec("stack_three", "StackThree", 80, _stack_objects, _stack_scene, _stack_describe),
+    # cubes within 7 cm of the table's centre (StackThree's own default is 10 cm): measured with the
+    # planner's choices drawn uniformly, 81% of plans succeed at 10 cm and 68% at 7 cm -- the clutter (fingers
+    # meeting a neighbour on the way down, a carried cube brushing another) is what makes choices matter
+    "stack_three": TaskSpec("stack_three", "StackThree", 80, _stack_objects, _stack_scene, _stack_describe,
+                            env_kwargs=(("placement_range", 0.07),)),
     "nut_assembly": TaskSpec("nut_assembly", "NutAssemblySquare", 100, _nut_objects, _nut_scene, _nut_describe),
     "pick_place": TaskSpec("pick_place", "PickPlace", 200, _pick_place_objects, _pick_place_scene,
                            _pick_place_describe),

@@ -10,13 +10,16 @@
   as long as the plan keeps the fingers closing.
 * **Episodes.** An episode is (task, seed, pose error): the environment's random generator and its
   object samplers are re-seeded and the environment reset, so the same seed gives the same scene in
-  every process; the robot starts at robosuite's initial posture (``initialization_noise=None``).
-  Every execution resets to that state again. Perception reports each object's position and yaw
+  every process; the robot starts at robosuite's initial posture (``initialization_noise=None``)
+  and holds it for a settling second while the objects, which robosuite's samplers place a little
+  above their support, drop and come to rest: that is the episode's initial state, observed and
+  imaged. Every execution resets to that state again. Perception reports each object's position and yaw
   with a seeded Gaussian error (in-plane std ``pose_error_mm``, height std at most 1 mm, yaw std
   ``pose_error_deg``); the image always shows the true scene.
 * **Outcome.** After the plan the arm holds its last targets for a settling second; the label is the
   environment's own ``_check_success()`` -- robosuite's for its tasks, ours in its style for three
-  cubes (:mod:`robosuite_worker.envs`) -- never a predicate of this module.
+  cubes (:mod:`robosuite_worker.envs`) -- never a predicate of this module. ``sim_seconds`` is the
+  episode's simulated time, both settling seconds included.
 """
 
 from __future__ import annotations
@@ -131,9 +134,14 @@ class RobosuiteWorld:
         return np.concatenate([qpos[robot._ref_joint_pos_indexes], fingers]).astype(float)
 
     def _reset(self, task: str, seed: int):
+        """Scene ``seed`` at rest: robosuite's samplers place objects a little above their support (1 cm for
+        the cubes, 6 cm for the nut), so the arm holds its initial posture while they drop and settle."""
         env = self.env(task)
         _reseed(env, seed)
         env.reset()
+        hold = np.concatenate([self.joint_positions(env)[:7], [gripper_action(np.full(2, FINGER_OPEN))]])
+        for _ in range(self.settle_steps):
+            env.step(hold)
         return env
 
     def begin(self, task: str, seed: int, pose_error_mm: float, pose_error_deg: float) -> EpisodeStart:

@@ -400,3 +400,42 @@ def test_the_run_path_never_imports_torch():
             "print('torch' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+class Unreachable(TampPlanner):
+    """Our planner, except that the arm cannot reach the poses of some block orders (their IK fails)."""
+
+    def __init__(self, unreachable: set[int]):
+        super().__init__(PlannerConfig(horizon=T))
+        self.unreachable = {block_orders()[k] for k in unreachable}
+
+    def plan(self, task, observation, order=None, planner_seed=None):
+        from planner_client.ik import IKFailure
+
+        if tuple(order) in self.unreachable:
+            raise IKFailure(f"no IK solution for {order}")
+        return super().plan(task, observation, order, planner_seed)
+
+
+def test_a_candidate_the_planner_cannot_plan_is_skipped_not_scored_and_fails_tamp_alone(sim_and_planner, tmp_path):
+    sim, _ = sim_and_planner
+    scorer = ScriptedScorer([0.1, 0.9, 0.9], threshold=0.5)
+    config = RunConfig(trials=1, seed=5, max_iterations=4, out=tmp_path / "run.jsonl")
+    (record,) = list(run_trials(config, sim, Unreachable({0, 2}), scorer))
+    # orders 0 and 2 have no plan: order 1 is scored (0.1, rejected), order 3 next (0.9, accepted)
+    assert record["scores"] == [0.1, 0.9] and record["firp_order"] == ORDERS[3] and record["firp_accepted"]
+    assert len(scorer.plans) == 2
+    assert record["tamp_success"] is False and record["tamp_reason"].startswith("no plan: no IK solution")
+    assert set(record["unplannable"]) == {str(ORDERS[0]), str(ORDERS[2])}
+    if record["oracle_success"]:
+        assert record["oracle_order"] in (ORDERS[1], ORDERS[3])
+    assert 1 <= record["executions"] <= 2  # only orders 1 and 3 have plans to execute; TAMP alone executes none
+
+
+def test_a_trial_with_no_plannable_candidate_says_so(sim_and_planner, tmp_path):
+    from planner_client.ik import IKFailure
+
+    sim, _ = sim_and_planner
+    config = RunConfig(trials=1, seed=5, max_iterations=2, out=tmp_path / "run.jsonl")
+    with pytest.raises(IKFailure, match="could plan none of its 2 candidates"):
+        list(run_trials(config, sim, Unreachable({0, 1}), ScriptedScorer([0.9], threshold=0.5)))

@@ -52,3 +52,22 @@ def test_the_cli_names_the_field_and_the_rule(tmp_path, args, message):
                           "--out", str(tmp_path / "x.h5"), *args], capture_output=True, text=True, cwd=ROOT,
                          timeout=120)
     assert out.returncode == 2 and message in out.stderr, out.stderr
+
+
+def test_an_unreachable_choice_gives_way_to_the_next_one_drawn_from_the_seed(world):
+    from planner_client.collect_robosuite import planned_choice
+    from planner_client.ik import IKFailure
+
+    class Reachless(RobosuiteTampPlanner):
+        def plan(self, task, observation, choice=None):
+            if choice == episode_choice(5, self.choices(task, observation)):
+                raise IKFailure("out of reach")
+            return super().plan(task, observation, choice)
+
+    observation = world.begin("stack_three", 5, 3.0, 3.0).observation
+    planner = Reachless()
+    first, plan, skipped = planned_choice(planner, "stack_three", observation, 5)
+    assert first != episode_choice(5, planner.choices("stack_three", observation)) and skipped == 1
+    assert planned_choice(planner, "stack_three", observation, 5)[0] == first and plan.actions.shape == (80, 16)
+    assert planned_choice(RobosuiteTampPlanner(), "stack_three", observation, 5)[0] == episode_choice(
+        5, planner.choices("stack_three", observation))

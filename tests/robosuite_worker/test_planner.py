@@ -60,3 +60,32 @@ def test_the_default_plan_builds_the_tower_in_the_world(world, planner, seed):
     start = world.begin("stack_three", seed, 3.0, 3.0)
     outcome = world.execute(start, planner.plan("stack_three", start.observation).actions, record_frames=False)
     assert (outcome.success, outcome.kind) == (True, "success"), outcome.reason
+
+
+def test_the_nut_is_grasped_at_its_handle_and_released_around_the_peg(world, planner):
+    start = world.begin("nut_assembly", 1, 3.0, 3.0)
+    choices = planner.choices("nut_assembly", start.observation)
+    assert len(choices) == 6 == len({c.label() for c in choices}) and choices[0].label() == "SquareNut:0:l:q0"
+    scene, nut = start.observation["scene"], start.observation["blocks"]["SquareNut"]
+    handle = np.asarray(scene["handle_offset"])
+    for choice in choices:
+        plan = planner.plan("nut_assembly", start.observation, choice)
+        categories, targets = split_plan(validate_plan(plan.actions))
+        assert plan.actions.shape == (100, 16) and _runs(categories) == list(PICK_PLACE_SEQUENCE)
+        ik = planner.ik(scene["robot_base"])
+        (grasp,), (release,) = _first_steps(categories, "grasp"), _first_steps(categories, "release")
+        c, s = np.cos(nut["yaw"]), np.sin(nut["yaw"])
+        at_grasp, _ = ik.forward(targets[grasp, :7])
+        np.testing.assert_allclose(at_grasp[:2], np.add(nut["position"][:2], [c * handle[0] - s * handle[1],
+                                                                           s * handle[0] + c * handle[1]]), atol=1e-3)
+        at_release, _ = ik.forward(targets[release, :7])
+        # the hand turned the nut by a multiple of a quarter turn relative to the peg: its centre is over the peg
+        offset = at_release[:2] - np.asarray(scene["peg"][:2])
+        assert abs(np.linalg.norm(offset) - np.linalg.norm(handle)) < 2e-3
+        assert (at_release[2] > scene["peg_top"]) == bool(choice.drops[0])
+
+
+def test_the_default_nut_plan_puts_the_nut_on_its_peg(world, planner):
+    start = world.begin("nut_assembly", 4, 3.0, 3.0)
+    outcome = world.execute(start, planner.plan("nut_assembly", start.observation).actions, record_frames=False)
+    assert (outcome.success, outcome.kind) == (True, "success"), outcome.reason

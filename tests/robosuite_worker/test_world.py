@@ -23,7 +23,8 @@ def test_an_episode_is_its_seed_and_a_plan_runs_from_its_initial_state(world, ta
     assert (first.success, first.kind, first.unstable) == (False, "not_done", False)
     assert first.reason.startswith(TASKS[task].env) and first.final_blocks == again.final_blocks
     assert first.frames.shape == (8, 64, 64, 3) and np.array_equal(first.frames[0], a.image)
-    assert first.sim_seconds == pytest.approx(8 / 4 + 1.0, abs=0.06)
+    # simulated time: the initial settling second, the plan's 8 steps at 4 FPS, the final settling second
+    assert first.sim_seconds == pytest.approx(1.0 + 8 / 4 + 1.0, abs=0.06)
     assert set(first.final_blocks) == set(a.observation["blocks"])
 
 

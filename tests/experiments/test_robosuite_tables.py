@@ -1,0 +1,54 @@
+"""The robosuite world's report helpers: the paper's table beside firp's, and the failure modes of a tower."""
+
+from __future__ import annotations
+
+import json
+
+from experiments.paper_table import PAPER, main, render, targets
+from experiments.robosuite_choices import failure_mode
+
+SCENE = {"table_height": 0.8, "cube_half": {"cubeA": 0.02, "cubeB": 0.025, "cubeC": 0.02}}
+
+
+def _results(scores: dict[str, list[float]]) -> dict:
+    rows = [{"method": m, "repeat": r, "test_balanced_accuracy": v} for m, vs in scores.items()
+            for r, v in enumerate(vs)]
+    return {"command": "firp evaluate --data d.h5 --repeats 2", "rows": rows, "not_run": {"dvd": "no weights here"}}
+
+
+def test_the_table_puts_firps_numbers_beside_the_papers_and_checks_the_targets(tmp_path):
+    results = _results({"a_mlp": [0.6, 0.7], "a_mlp_image": [0.8, 0.9], "gru": [0.84, 0.86], "firp": [0.9, 0.9],
+                        "firp_ensemble": [0.91, 0.93], "oracle": [0.96, 0.98]})
+    text = render({"stack_three": results})
+    rows = {line.split(" | ")[0].strip("| "): line for line in text.splitlines() if line.startswith("| ")}
+    assert "| 0.923 ± 0.028 |" in rows["FIRP"] and rows["FIRP"].endswith("| 0.900 ± 0.000 (2) |")
+    assert rows["A-MLP"].endswith("| not run yet | not run yet | 0.650 ± 0.050 (2) |")
+    assert "not run: no weights here" in rows["DVD"]
+    assert targets(2, {"firp_ensemble": [0.92], "a_mlp_image": [0.85], "oracle": [0.94]}) == [
+        "FIRP ensemble 0.920 vs the paper's FIRP 0.923 − 0.03 = 0.893: met",
+        "FIRP ensemble 0.920 vs the best non-oracle baseline (a_mlp_image, 0.850) + 0.02 = 0.870: met",
+        "Oracle 0.940 vs 0.95: not met"]
+    assert "vs the best non-oracle baseline (a_mlp_image, 0.850) + 0.02 = 0.870: not met" in \
+        targets(2, {"firp_ensemble": [0.86], "a_mlp_image": [0.85]})[1]
+    path = tmp_path / "r.json"
+    path.write_text(json.dumps(results))
+    assert main(["--stack-three", str(path), "--out", str(tmp_path / "t.md")]) == 0
+    assert (tmp_path / "t.md").read_text() == text
+    assert PAPER["oracle"][1] == (0.981, 0.016)
+
+
+def _blocks(**z: float) -> dict:
+    return {name: {"position": [0.0, 0.0, 0.8 + height], "yaw": 0.0} for name, height in z.items()}
+
+
+def test_failure_modes_name_the_cube_that_did_not_reach_the_tower():
+    order = ["cubeA", "cubeB", "cubeC"]
+    assert failure_mode(order, _blocks(cubeA=0.02, cubeB=0.025, cubeC=0.065), SCENE, "not_done") == \
+        "middle cube on the table"
+    assert failure_mode(order, _blocks(cubeA=0.02, cubeB=0.065, cubeC=0.02), SCENE, "not_done") == \
+        "top cube on the table"
+    assert failure_mode(order, _blocks(cubeA=0.02, cubeB=0.025, cubeC=0.02), SCENE, "not_done") == \
+        "middle cube on the table and top cube on the table"
+    assert failure_mode(order, _blocks(cubeA=0.02, cubeB=0.065, cubeC=0.11), SCENE, "not_done").startswith(
+        "tower stands incomplete")
+    assert failure_mode(order, {}, SCENE, "unstable") == "unstable"
