@@ -47,7 +47,7 @@ def method_scores(results: dict) -> dict[str, list[float]]:
 def _cell(values: list[float] | None) -> str:
     if not values:
         return ""
-    std = statistics.pstdev(values) if len(values) > 1 else 0.0
+    std = statistics.stdev(values) if len(values) > 1 else 0.0  # as firp evaluate reports it
     return f"{statistics.fmean(values):.3f} ± {std:.3f} ({len(values)})"
 
 
