@@ -30,6 +30,11 @@ from sim_worker.world import World
 ORDER_STREAM = 11  # separates the block-order draw from the scene and perception streams
 
 
+def parts_dir_of(out: Path) -> Path:
+    """Where a collection into ``out`` keeps its finished episodes until they are merged."""
+    return out.with_name(out.name + ".parts")
+
+
 @dataclass(frozen=True)
 class CollectConfig:
     task: str
@@ -44,7 +49,7 @@ class CollectConfig:
 
     @property
     def parts_dir(self) -> Path:
-        return self.out.with_name(self.out.name + ".parts")
+        return parts_dir_of(self.out)
 
 
 def episode_order(seed: int) -> tuple[str, ...]:

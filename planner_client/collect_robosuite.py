@@ -17,7 +17,7 @@ import numpy as np
 
 from firp.core.contract import FPS
 from firp.core.episodes import EpisodeRecord, write_episode_part
-from planner_client.collect import run_collection
+from planner_client.collect import parts_dir_of, run_collection
 from planner_client.ik import IKFailure
 from planner_client.robosuite_tamp import TASK_HORIZONS, Choice, RobosuiteTampPlanner
 
@@ -41,7 +41,7 @@ class RobosuiteCollectConfig:
 
     @property
     def parts_dir(self) -> Path:
-        return self.out.with_name(self.out.name + ".parts")
+        return parts_dir_of(self.out)
 
     @property
     def horizon(self) -> int:
@@ -84,8 +84,8 @@ def simulate_episode(world, planner: RobosuiteTampPlanner, task: str, seed: int,
     return EpisodeRecord(
         frames=frames, actions=plan.actions.astype(np.float32), states=states, success=bool(outcome.success),
         attrs={"task": task, "seed": int(seed), "choice": choice.label(), "choice_index": choices.index(choice),
-               "is_default_choice": choice == choices[0], "unreachable_choices_skipped": skipped, "block_order": list(choice.order),
-               "grasp_axes": list(choice.axes), "pose_estimates": start.observation["blocks"],
+               "is_default_choice": choice == choices[0], "unreachable_choices_skipped": skipped,
+               "block_order": list(choice.order), "grasp_axes": list(choice.axes), "pose_estimates": start.observation["blocks"],
                "scene": start.observation["scene"], "grasp_yaws": plan.grasp_yaws,
                "place_targets": plan.place_targets, "kind": outcome.kind, "reason": outcome.reason,
                "final_blocks": outcome.final_blocks, "sim_seconds": outcome.sim_seconds,

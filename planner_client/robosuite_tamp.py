@@ -25,7 +25,7 @@ from itertools import permutations, product
 import numpy as np
 
 from firp.core.contract import make_plan
-from planner_client.ik import ArmIK, ArmModel, IKConfig, IKFailure
+from planner_client.ik import ArmIK, ArmModel, IKConfig, IKFailure, rotation_yaw
 from planner_client.tamp import QUARTER, PickPlaceTiming, Segment, nearest_equivalent, pick_and_place, trajectory
 
 __all__ = ["PLANNED_TASKS", "Choice", "RobosuitePlan", "RobosuitePlannerConfig", "RobosuiteTampPlanner", "TASK_HORIZONS"]
@@ -136,28 +136,23 @@ class RobosuiteTampPlanner:
         ik = self.ik(scene["robot_base"])
         q = np.asarray(scene["robot_start"], dtype=float)
         start_pos, start_rot = ik.forward(q)
-        from planner_client.ik import rotation_yaw
-
         start_yaw = rotation_yaw(start_rot, ik.arm.finger_axis)
         if task == "stack_three":
-            moves = self._stack_moves(observation, choice, start_yaw)
+            alternatives = [self._stack_moves(observation, choice, start_yaw)]
         elif task == "nut_assembly":
             # of the two hand yaws holding the handle alike, the first one the wrist can turn through
-            for flip in (0.0, np.pi, -np.pi):
-                moves = self._nut_moves(observation, choice, start_yaw, flip)
-                segments, yaws, places = self._segments(moves, start_pos)
-                try:
-                    categories, targets = trajectory(segments, start_pos, start_yaw, TASK_HORIZONS[task], ik, q)
-                    break
-                except IKFailure:
-                    if flip == -np.pi:
-                        raise
-            return RobosuitePlan(make_plan(categories, targets), choice, yaws, places, segments)
+            alternatives = [self._nut_moves(observation, choice, start_yaw, flip) for flip in (0.0, np.pi, -np.pi)]
         else:
             raise ValueError(f"task: the robosuite planner does not plan {task!r} yet")
-        segments, yaws, places = self._segments(moves, start_pos)
-        categories, targets = trajectory(segments, start_pos, start_yaw, TASK_HORIZONS[task], ik, q)
-        return RobosuitePlan(make_plan(categories, targets), choice, yaws, places, segments)
+        for k, moves in enumerate(alternatives):
+            segments, yaws, places = self._segments(moves, start_pos)
+            try:
+                categories, targets = trajectory(segments, start_pos, start_yaw, TASK_HORIZONS[task], ik, q)
+            except IKFailure:
+                if k == len(alternatives) - 1:
+                    raise
+                continue
+            return RobosuitePlan(make_plan(categories, targets), choice, yaws, places, segments)
 
     def _stack_moves(self, observation: dict, choice: Choice, neutral_yaw: float
                      ) -> list[tuple[np.ndarray, float, np.ndarray, float]]:
