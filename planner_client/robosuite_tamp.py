@@ -12,9 +12,11 @@ Tasks so far: ``stack_three`` -- the order of the tower (6), a pair of faces per
 grasp height per moved cube (4: at the centre, or ``high_grasp_below_top`` under the top face, which
 keeps the fingertips clear of the tower but holds the cube by less of its side): 96 choices, the
 default (alphabetical order, least wrist turn, centre grasps) first and the other orders next.
-``nut_assembly`` -- the handle grasped across its width or along it, and the nut lowered around the
-peg with its handle towards the robot, or dropped from above the peg with the handle towards the
-robot or to the side (6 choices; lowering it with the handle to the side is out of the arm's reach).
+``nut_assembly`` -- the handle grasped across its width or along it, at one of five points along it
+(:data:`NUT_GRIPS`), and the nut lowered around the peg with its handle towards the robot, or dropped
+from above the peg with the handle towards the robot or to the side: 30 choices (lowering it with the
+handle to the side is out of the arm's reach), the default (across, at the handle's middle, lowered)
+first.
 """
 
 from __future__ import annotations
@@ -32,9 +34,8 @@ __all__ = ["PLANNED_TASKS", "Choice", "RobosuitePlan", "RobosuitePlannerConfig",
 
 #: T of each task (robosuite_worker.tasks.TASKS, repeated here: the planner does not import robosuite's world)
 TASK_HORIZONS = {"stack_three": 80, "nut_assembly": 100, "pick_place": 200}
-#: the tasks the commands offer so far: nut_assembly plans (its default choice put the nut on its peg in 6 of 6
-#: scenes measured), but 34 of its 36 plans measured succeeded, too few failures for a dataset of both classes
-PLANNED_TASKS = ("stack_three",)
+#: the tasks the commands offer so far (pick_place has no planner yet)
+PLANNED_TASKS = ("stack_three", "nut_assembly")
 
 
 @dataclass(frozen=True)
@@ -48,6 +49,15 @@ class RobosuitePlannerConfig:
 
 #: grasp heights a choice can take, per moved object
 GRASP_HEIGHTS = ("centre", "high")
+#: where along the nut's handle (5 cm long, its inner 1.5 cm beside the nut's wall) the hand holds it: metres
+#: outwards from the handle's centre, the site robosuite marks on it -- middle, 5 and 10 mm outwards, 4 and 8 mm
+#: inwards. Measured on 4 scenes (30 choices each): across the handle, the inner grips fail 5 times in 8 (the
+#: fingers meet the nut's wall); along it, the outer grips fail 22 times in 24 (the outer finger passes the
+#: handle's end); the others succeed 94% of the time
+NUT_GRIPS = (0.0, 0.005, 0.01, -0.004, -0.008)
+NUT_GRIP_NAMES = ("m", "o", "O", "i", "I")
+#: the nut's release height above the peg's top, for ``drops`` 1 (0 lowers it to the table around the peg)
+NUT_DROP_HEIGHT = 0.01
 
 
 @dataclass(frozen=True)
@@ -60,6 +70,7 @@ class Choice:
     heights: tuple[int, ...] = ()  # per moved object, index into GRASP_HEIGHTS (missing: centre)
     drops: tuple[int, ...] = ()  # nut: 0 = lowered onto the table around the peg, 1 = dropped from above the peg
     turns: tuple[int, ...] = ()  # nut: 0 = the nearest quarter turn that fits the peg, 1 = the next nearest
+    grips: tuple[int, ...] = ()  # nut: where along its handle the hand holds it, index into NUT_GRIPS
 
     def height(self, k: int) -> str:
         return GRASP_HEIGHTS[self.heights[k]] if k < len(self.heights) else "centre"
@@ -72,6 +83,8 @@ class Choice:
             parts.append("".join("d" if d else "l" for d in self.drops))
         if self.turns:
             parts.append("".join(f"q{t}" for t in self.turns))
+        if self.grips:
+            parts.append("".join(NUT_GRIP_NAMES[g] for g in self.grips))
         return ":".join(parts)
 
 
@@ -115,7 +128,8 @@ class RobosuiteTampPlanner:
             # lowered around the peg only with the handle towards the robot: the other yaws put the hand
             # out of the arm's reach at the table (the peg stands 79 cm from the base)
             ways = ((0, 0), (1, 0), (1, 1))  # (drops, turns)
-            return [Choice(names, (axis,), drops=(drop,), turns=(turn,)) for drop, turn in ways for axis in (0, 1)]
+            return [Choice(names, (axis,), drops=(drop,), turns=(turn,), grips=(grip,))
+                    for grip in range(len(NUT_GRIPS)) for drop, turn in ways for axis in (0, 1)]
         raise ValueError(f"task: the robosuite planner does not plan {task!r} yet")
 
     # -- what the trial loop replans over (planner_client.loop.Planner) ---------------------------------
@@ -196,6 +210,8 @@ class RobosuiteTampPlanner:
             c, s = np.cos(angle), np.sin(angle)
             return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1]])
 
+        grip = NUT_GRIPS[choice.grips[0]] if choice.grips else 0.0
+        handle = handle * (1.0 + grip / np.linalg.norm(handle))
         grasp = np.array([*(pos[:2] + rotate(yaw, handle)), pos[2]])
         # the nut's yaw over the peg: a quarter turn of it fits the peg as well, so the four differ in where the
         # handle (the hand) ends up -- best towards the robot's base, which keeps the hand within reach
@@ -211,8 +227,8 @@ class RobosuiteTampPlanner:
         # the one that keeps the whole turn closest to the hand's starting yaw
         finger_yaw = yaw + (QUARTER if choice.axes[0] == 0 else 0.0)
         grasp_yaw = nearest_equivalent(finger_yaw, neutral_yaw - turn / 2, np.pi) + flip
-        if choice.drops[0]:  # released with the nut's underside 1 cm above the peg's top
-            nut_z = scene["peg_top"] + scene["nut_half_height"] + 0.01
+        if choice.drops[0]:  # released with the nut's underside this far above the peg's top
+            nut_z = scene["peg_top"] + scene["nut_half_height"] + NUT_DROP_HEIGHT
         else:  # lowered around the peg to just above the table
             nut_z = scene["table_height"] + scene["nut_half_height"] + self.config.release_gap
         release = np.array([*(peg[:2] + rotate(target_yaw, handle)), nut_z + grasp[2] - pos[2]])

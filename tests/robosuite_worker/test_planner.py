@@ -10,7 +10,7 @@ import pytest
 
 from firp.core.contract import CATEGORIES, PICK_PLACE_SEQUENCE, split_plan, validate_plan
 from planner_client.ik import rotation_yaw
-from planner_client.robosuite_tamp import Choice, RobosuiteTampPlanner
+from planner_client.robosuite_tamp import NUT_GRIPS, Choice, RobosuiteTampPlanner
 
 
 @pytest.fixture(scope="module")
@@ -65,10 +65,12 @@ def test_the_default_plan_builds_the_tower_in_the_world(world, planner, seed):
 def test_the_nut_is_grasped_at_its_handle_and_released_around_the_peg(world, planner):
     start = world.begin("nut_assembly", 1, 3.0, 3.0)
     choices = planner.choices("nut_assembly", start.observation)
-    assert len(choices) == 6 == len({c.label() for c in choices}) and choices[0].label() == "SquareNut:0:l:q0"
+    assert len(choices) == 30 == len({c.label() for c in choices}) and choices[0].label() == "SquareNut:0:l:q0:m"
     scene, nut = start.observation["scene"], start.observation["blocks"]["SquareNut"]
-    handle = np.asarray(scene["handle_offset"])
-    for choice in choices:
+    for choice in choices[::3]:  # every grip and way, both axes
+        # the hand holds the handle at the choice's point along it: outwards from the handle's centre
+        handle = np.asarray(scene["handle_offset"])
+        handle = handle * (1 + NUT_GRIPS[choice.grips[0]] / np.linalg.norm(handle))
         plan = planner.plan("nut_assembly", start.observation, choice)
         categories, targets = split_plan(validate_plan(plan.actions))
         assert plan.actions.shape == (100, 16) and _runs(categories) == list(PICK_PLACE_SEQUENCE)
