@@ -85,10 +85,12 @@ def pct(values: list[float], q: float) -> float:
 class Server:
     """``python -m service`` in a subprocess; stopped (SIGTERM, then SIGKILL) on exit."""
 
-    def __init__(self, bundle: Path, threads: int, port: int, ready_timeout: float, micro_batch: bool = True):
+    def __init__(self, bundle: Path, threads: int, port: int, ready_timeout: float, micro_batch: bool = True,
+                 settings: dict[str, str] | None = None):
         self.base = f"http://127.0.0.1:{port}"
         env = {k: v for k, v in os.environ.items() if not k.startswith("FIRP_SERVICE_")}
         env.update(OMP_NUM_THREADS=str(threads), PYTHONPATH=str(ROOT), FIRP_SERVICE_MICRO_BATCH=str(micro_batch).lower())
+        env.update({f"FIRP_SERVICE_{k.upper()}": v for k, v in (settings or {}).items()})
         self.log = open(Path(os.environ.get("TMPDIR", "/tmp")) / f"service_latency_{port}.log", "w+")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "service", "--host", "127.0.0.1", "--port", str(port), "--bundle", str(bundle),

@@ -121,7 +121,8 @@ class ScoreClient:
 
     def __init__(self, base_url: str, api_key: str | None = None, *, api_key_header: str = "X-API-Key",
                  timeout: float = 30.0, connect_timeout: float = 3.0, retry: RetryPolicy = RetryPolicy()):
-        headers = {api_key_header: api_key} if api_key else None
+        # the service drops work still queued when this client would have given up on it anyway
+        headers = {"X-Request-Timeout": f"{timeout:g}", **({api_key_header: api_key} if api_key else {})}
         self.http = JsonHttp("scoring service", base_url, timeout=timeout, connect_timeout=connect_timeout,
                              retry=retry, headers=headers)
 

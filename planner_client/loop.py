@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import time
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Hashable, Iterator, Protocol, Sequence
@@ -31,6 +32,7 @@ import numpy as np
 
 from planner_client.backend import SimBackend, SimOutcome
 from planner_client.ik import IKFailure
+from planner_client.transport import request_id
 
 
 @dataclass(frozen=True)
@@ -236,7 +238,15 @@ def oracle_line(work: TrialWork, orders: list[Hashable]) -> dict:
 
 def run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: Planner, scorer: Scorer | None,
               identity: dict) -> dict:
-    """One trial's record (see the module docstring for what is run)."""
+    """One trial's record (see the module docstring for what is run). Every call of the trial to the sim
+    worker and the scoring service carries the trial's ``X-Request-ID``, which the record keeps."""
+    with request_id(f"trial-{trial}-{uuid.uuid4().hex[:12]}") as rid:
+        record = _run_trial(trial, config, sim, planner, scorer, identity)
+    return {**record, "request_id": rid}
+
+
+def _run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: Planner, scorer: Scorer | None,
+               identity: dict) -> dict:
     started = time.perf_counter()
     seed = config.seed + trial
     episode = sim.start(config.task, seed)

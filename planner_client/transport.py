@@ -4,16 +4,45 @@ Both services the planner talks to are plain JSON APIs behind the same failure m
 that is starting (connection refused, 503 from ``/readyz``), one that died or is overloaded
 (connection errors, 5xx), and a request that is wrong (4xx). Only the first two are worth
 retrying, with exponential backoff; a 4xx would fail the same way again, so it is raised at once
-with the service's ``{"error": {"field", "rule", "message"}}`` details.
+with the service's ``{"error": {"field", "rule", "message"}}`` details. A service that sheds load
+answers 503 with ``Retry-After``: the next try waits at least that long (capped by the policy's
+``max_retry_after``), so an overloaded service is not hammered by the very clients it refused.
+
+Every call carries the ``X-Request-ID`` of the work it belongs to (:func:`request_id`: the trial
+loop sets one per trial and stores it in the trial's record), so both services' log lines of one
+trial can be found by it.
 """
 
 from __future__ import annotations
 
 import time
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 from typing import Any, Callable
 
 import httpx
+
+
+REQUEST_ID_HEADER = "X-Request-ID"
+_REQUEST_ID: ContextVar[str | None] = ContextVar("firp_request_id", default=None)
+
+
+@contextmanager
+def request_id(value: str | None = None) -> Iterator[str]:
+    """Every call made inside carries ``X-Request-ID: value`` (default: a new random id)."""
+    value = value or uuid.uuid4().hex
+    token = _REQUEST_ID.set(value)
+    try:
+        yield value
+    finally:
+        _REQUEST_ID.reset(token)
+
+
+def current_request_id() -> str | None:
+    return _REQUEST_ID.get()
 
 
 @dataclass(frozen=True)
@@ -24,9 +53,20 @@ class RetryPolicy:
     attempts: int = 4
     base_delay: float = 0.25
     max_delay: float = 4.0
+    max_retry_after: float = 30.0  # the longest Retry-After honoured
 
-    def delay(self, retry: int) -> float:
-        return min(self.max_delay, self.base_delay * 2 ** (retry - 1))
+    def delay(self, retry: int, retry_after: float | None = None) -> float:
+        """The wait before retry ``retry``: the backoff, or the server's ``Retry-After`` if longer."""
+        backoff = min(self.max_delay, self.base_delay * 2 ** (retry - 1))
+        return backoff if retry_after is None else max(backoff, min(retry_after, self.max_retry_after))
+
+
+def retry_after_seconds(response: httpx.Response) -> float | None:
+    """``Retry-After`` in seconds (RFC 9110 delay-seconds; an HTTP date is not honoured), or None."""
+    value = response.headers.get("retry-after")
+    if value is None or not value.strip().isdigit():
+        return None
+    return float(value.strip())
 
 
 class ServiceError(RuntimeError):
@@ -86,15 +126,20 @@ class JsonHttp:
         when connection errors or 5xx persist through every attempt."""
         url = self.base_url + path
         last = ""
+        retry_after: float | None = None
         for attempt in range(1, self.retry.attempts + 1):
             if attempt > 1:
-                self._sleep(self.retry.delay(attempt - 1))
+                self._sleep(self.retry.delay(attempt - 1, retry_after))
+            retry_after = None
+            rid = _REQUEST_ID.get()
             try:
-                response = self._client.request(method, path, json=json)
+                response = self._client.request(method, path, json=json,
+                                                headers={REQUEST_ID_HEADER: rid} if rid else None)
             except httpx.TransportError as exc:
                 last = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
                 continue
             if response.status_code >= 500:
+                retry_after = retry_after_seconds(response) if response.status_code == 503 else None
                 field, rule, detail = _error_details(response)
                 last = f"HTTP {response.status_code}" + (f" ({rule})" if rule else "") + f": {detail}"
                 continue

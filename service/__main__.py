@@ -5,15 +5,15 @@ Flags map onto :class:`service.settings.ServiceSettings`; anything not given com
 with more processes (each loads the bundle) rather than more threads per request.
 
 Exit status: 2 for bad flags or settings; 3 (uvicorn's) when the application fails to start,
-e.g. a missing, corrupt or incompatible bundle -- the log names the file and the rule. On SIGTERM or
-Ctrl-C uvicorn finishes the requests in flight, runs the lifespan's shutdown, and exits by that
-signal (status -15 / 130 as a shell sees it).
+e.g. a missing, corrupt or incompatible bundle -- the log names the file and the rule. On SIGTERM the
+service drains (:mod:`service.server`: readiness 503 at once, admitted work answered within
+``drain_grace_s``) and exits 0; Ctrl-C (or a second SIGTERM) stops at once, uvicorn's way (130).
+SIGHUP swaps in the configured bundle's directory, read again, without dropping a request.
 """
 
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 from pathlib import Path
 
@@ -35,6 +35,9 @@ def parse_args(argv: list[str] | None = None, prog: str = "python -m service") -
     ap.add_argument("--threads", type=int, help="torch threads for inference (default 1; env FIRP_SERVICE_THREADS)")
     ap.add_argument("--log-level", choices=["critical", "error", "warning", "info", "debug"],
                     help="log level (default info)")
+    ap.add_argument("--log-format", choices=["text", "json"],
+                    help="json: one JSON object per log line, one line per request (default text; env "
+                         "FIRP_SERVICE_LOG_FORMAT)")
     ap.add_argument("--no-access-log", dest="access_log", action="store_const", const=False,
                     help="do not log every request")
     args = vars(ap.parse_args(argv))
@@ -50,11 +53,19 @@ def main(argv: list[str] | None = None, prog: str = "python -m service") -> int:
         return 2
     import uvicorn  # after the settings are known to be good: a typo should not wait for torch
 
+    from firp.core.request_log import configure_logging
     from service.app import create_app
+    from service.server import ServiceServer
 
-    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=settings.log_level,
-                access_log=settings.access_log)
+    configure_logging(settings.log_level, settings.log_format)
+    app = create_app(settings)
+    # uvicorn's loggers propagate to the root handler; the request lines are firp.core.request_log's
+    config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=settings.log_level,
+                            access_log=False, log_config=None, timeout_graceful_shutdown=5)
+    server = ServiceServer(config, app, settings.drain_grace_s, settings.drain_notice_s)
+    server.run()
+    if not server.started:  # the lifespan failed (the log says why): uvicorn's start-up failure status
+        return 3
     return 0
 
 

@@ -6,8 +6,9 @@ corrupt or incompatible bundle must fail at start-up with the file and the rule 
 turns true only after a warm-up inference, so a load balancer never routes a planner's first call
 to a cold model.
 
-Layout of a request: :class:`~service.metrics.MetricsMiddleware` (outermost: counts everything,
-also refusals) -> :class:`~service.guard.RequestGuard` (415/413 before any parsing) -> FastAPI
+Layout of a request: :class:`~firp.core.request_log.RequestLog` (outermost: the request id, the
+request's log line) -> :class:`~service.metrics.MetricsMiddleware` (counts everything, also refusals) -> :class:`~service.admission.AdmissionControl` (scoring routes: 503 when full,
+the request's deadline) -> :class:`~service.guard.RequestGuard` (415/413 before any parsing) -> FastAPI
 (request bodies parsed by pydantic-core, :mod:`service.routing`; pydantic validation; 422s converted
 to the one error shape by :mod:`service.errors`) -> route -> :func:`service.deps.score_off_loop` ->
 the micro-batcher (:mod:`service.batching`, a task of the lifespan) -> worker thread, one forward
@@ -29,6 +30,7 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel
 
 from firp.bundle import BundleError
+from firp.core.request_log import RequestLog
 from service.deps import (
     check_batch_size,
     check_task,
@@ -38,6 +40,7 @@ from service.deps import (
     score_off_loop,
     settings_of,
 )
+from service.admission import AdmissionControl, InFlight
 from service.batching import MicroBatcher
 from service.errors import error_responses, install_error_handlers
 from service.guard import RequestGuard
@@ -57,7 +60,9 @@ from service.schemas import (
 )
 from service.scorer import ModelScores, ServiceModel, set_torch_threads
 from service.settings import ServiceSettings
+from service.repository import ModelRepository
 from service.v2 import V2InferRoute, v2_router
+from service.v2.repository import repository_router
 
 __all__ = ["StartupError", "create_app"]
 
@@ -71,7 +76,7 @@ class StartupError(RuntimeError):
     """The service cannot start: the message says which bundle and why."""
 
 
-_POST_ERRORS = error_responses(401, 413, 415, 422, 503)
+_POST_ERRORS = error_responses(400, 401, 413, 415, 422, 503, 504)
 _GET_ERRORS = error_responses(401, 503)
 
 
@@ -92,13 +97,13 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     warmup_ms = await anyio.to_thread.run_sync(model.warm_up)
     async with anyio.create_task_group() as tasks:
         if settings.micro_batch:
-            batcher = MicroBatcher(model, settings.micro_batch_max_plans, metrics)
+            batcher = MicroBatcher(model, settings.micro_batch_max_plans, metrics,
+                                   max_queued_plans=settings.max_queued_plans, retry_after_s=settings.retry_after_s,
+                                   max_queue_wait_s=settings.max_queue_wait_s)
             await tasks.start(batcher.run)
             app.state.batcher = batcher
-        app.state.model = model
         app.state.phase = "ready"
-        metrics.model_info.labels(model.name, model.version, model.task).set(1)
-        metrics.ready.set(1)
+        app.state.repository.install(model, path)
         log.info("ready: bundle %s version %s (task %s, %d members, T in [%d, %d]), warm-up %.0f ms, "
                  "micro-batching %s", model.name, model.version, model.task, model.n_members, model.t_min,
                  model.t_max, warmup_ms, "on" if settings.micro_batch else "off")
@@ -110,7 +115,10 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             tasks.cancel_scope.cancel()  # the batcher answers what is still queued with a 503
 
 
-def _model_ref(model: ServiceModel) -> ModelRef:
+def _model_ref(model: ServiceModel, scores: ModelScores | None = None) -> ModelRef:
+    """The bundle that scored (``scores``), which a hot swap may have made another than the route's ``model``."""
+    if scores is not None and scores.version:
+        return ModelRef(name=scores.name, version=scores.version)
     return ModelRef(name=model.name, version=model.version)
 
 
@@ -161,7 +169,7 @@ def _v1_router(guarded: list[Any]) -> APIRouter:
             **_plan_result(scores, 0),
             threshold=scores.threshold,
             attention=None if attention is None else attention.tolist(),
-            model=_model_ref(model),
+            model=_model_ref(model, scores),
             request_id=body.request_id,
             elapsed_ms=(time.perf_counter() - start) * 1000.0,
         ))
@@ -176,7 +184,7 @@ def _v1_router(guarded: list[Any]) -> APIRouter:
         return _json(BatchScoreResponse(
             results=[PlanResult(**_plan_result(scores, i)) for i in range(len(body.plans))],
             threshold=scores.threshold,
-            model=_model_ref(model),
+            model=_model_ref(model, scores),
             request_id=body.request_id,
             elapsed_ms=(time.perf_counter() - start) * 1000.0,
         ))
@@ -229,19 +237,32 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     app.state.metrics = ServiceMetrics()
+    app.state.in_flight = InFlight(app.state.metrics)
     app.state.model = None
     app.state.batcher = None
     app.state.phase = "starting"
+    app.state.repository = ModelRepository(app)
     install_error_handlers(app)
-    routers = [_health_router(), _v1_router(_guarded(settings)), v2_router(_guarded(settings))]
+    routers = [_health_router(), _v1_router(_guarded(settings)), v2_router(_guarded(settings)),
+               repository_router(_guarded(settings))]
     for router in routers:
         app.include_router(router)
     # add_middleware wraps: the last added runs first.
     routes = [r for router in routers for r in router.routes]
     binary_routes = [r for r in routes if isinstance(r, V2InferRoute)]  # the binary tensor extension's routes
-    app.add_middleware(RequestGuard, max_body_bytes=settings.max_body_bytes, routes=routes, binary_routes=binary_routes)
+    optional_body = [r for r in routes if getattr(r, "path", "").startswith("/v2/repository")]
+    app.add_middleware(RequestGuard, max_body_bytes=settings.max_body_bytes, routes=routes, binary_routes=binary_routes,
+                       optional_body_routes=optional_body)
+    # before the guard reads a body: an overloaded service refuses a request without reading it
+    scoring = [r for r in routes if "POST" in getattr(r, "methods", ()) and not r.path.startswith("/v2/repository")]
+    app.add_middleware(AdmissionControl, routes=scoring, max_concurrent=settings.max_concurrent_requests,
+                       default_timeout_s=settings.request_timeout_s, retry_after_s=settings.retry_after_s,
+                       metrics=app.state.metrics, in_flight=app.state.in_flight,
+                       queue_full=lambda: app.state.batcher.full() if app.state.batcher is not None else None)
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["GET", "POST"],
                            allow_headers=["Content-Type", "X-API-Key"])
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics, routes=routes)
+    # outermost: every answer carries the request id, every request gets its log line
+    app.add_middleware(RequestLog, logger="service.access", enabled=settings.access_log)
     return app

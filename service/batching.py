@@ -14,6 +14,10 @@ How, and why this way:
 * **One runner task** (started in the app's lifespan) owns the queue and hands each batch to
   the worker thread (:meth:`ServiceModel.score_jobs`, under the model's one inference token).
   The event loop stays free to parse the next requests while a batch runs.
+* **Bounded, with deadlines** (:mod:`service.admission`). At most ``max_queued_plans`` plans wait
+  for a pass: a request beyond that is refused with 503 at once. A request whose deadline passes
+  while it waits is answered 504 and dropped when the runner reaches it, so no pass computes work
+  nobody waits for.
 * **Errors stay per request.** Each job is validated and its image decoded on its own; a bad plan
   fails its own request (422), never its batch neighbours'. An unexpected error in the shared
   pass fails the requests of that pass (500), and the runner goes on.
@@ -23,12 +27,14 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from dataclasses import dataclass, field
 
 import anyio
 import anyio.abc
 from anyio.streams.memory import MemoryObjectReceiveStream, MemoryObjectSendStream
 
+from service.admission import deadline_exceeded, overloaded
 from service.errors import ServiceError
 from service.metrics import ServiceMetrics
 from service.scorer import ModelScores, ScoreJob, ServiceModel
@@ -41,8 +47,15 @@ log = logging.getLogger("service")
 @dataclass
 class _Pending:
     job: ScoreJob
+    deadline: float | None = None  # time.monotonic() seconds
+    budget_s: float | None = None  # for the 504's message
     done: anyio.Event = field(default_factory=anyio.Event)
     result: ModelScores | BaseException | None = None
+    taken: bool = False  # in a pass (computed, or being computed)
+    abandoned: bool = False  # its request was answered (504) before a pass took it
+
+    def expired(self, now: float) -> bool:
+        return self.abandoned or (self.deadline is not None and now >= self.deadline)
 
     @property
     def n_plans(self) -> int:
@@ -52,43 +65,125 @@ class _Pending:
 class MicroBatcher:
     """Queue of scoring jobs served by one runner task (:meth:`run`) in shared forward passes."""
 
-    def __init__(self, model: ServiceModel, max_plans: int, metrics: ServiceMetrics | None = None):
+    def __init__(self, model: ServiceModel, max_plans: int, metrics: ServiceMetrics | None = None,
+                 max_queued_plans: int | None = None, retry_after_s: int = 1, max_queue_wait_s: float = 0.0):
         if max_plans < 1:
             raise ValueError(f"max_plans must be >= 1, got {max_plans}")
         self.model = model
         self.max_plans = max_plans
         self.metrics = metrics
+        self.max_queued_plans = max_queued_plans
+        self.retry_after_s = retry_after_s
+        self.queued_plans = 0  # plans submitted and not yet taken by the runner
+        self.max_queue_wait_s = max_queue_wait_s  # 0: no bound on the expected wait
+        self.seconds_per_plan: float | None = None  # measured: moving average over the last passes
         self._send: MemoryObjectSendStream[_Pending]
         self._receive: MemoryObjectReceiveStream[_Pending]
         self._send, self._receive = anyio.create_memory_object_stream[_Pending](math.inf)
         self._carry: _Pending | None = None  # taken from the queue but did not fit the last batch
         self._running = False
 
-    async def submit(self, job: ScoreJob) -> ModelScores:
-        """Queue ``job`` and wait for its scores (or raise its error)."""
+    async def submit(self, job: ScoreJob, deadline: float | None = None) -> ModelScores:
+        """Queue ``job`` and wait for its scores (or raise its error): 503 if the queue is full, 504 if
+        ``deadline`` (``time.monotonic()`` seconds) passes first."""
         if not self._running:
             raise ServiceError(503, None, "not_ready", "the service is not scoring (starting or stopping)",
                                headers={"Retry-After": "1"})
-        pending = _Pending(job)
-        self._send.send_nowait(pending)  # unbounded: the body limits and max_batch bound each job
-        await pending.done.wait()
+        n = len(job.plans)
+        reason = self.full(n)
+        if reason is not None:
+            self._count_shed()
+            raise overloaded(f"this request brings {n} plans, and {reason}", self.retry_after_s)
+        now = time.monotonic()
+        pending = _Pending(job, deadline, None if deadline is None else deadline - now)
+        if pending.expired(now):
+            self._count_deadline("queued")
+            raise deadline_exceeded("queued", pending.budget_s)
+        self._set_queued(self.queued_plans + n)
+        self._send.send_nowait(pending)  # bounded by max_queued_plans, above
+        with anyio.move_on_after(math.inf if deadline is None else deadline - now):
+            await pending.done.wait()
+        if not pending.done.is_set():  # the budget ran out first
+            stage = "running" if pending.taken else "queued"
+            pending.abandoned = True  # the runner drops it if it has not taken it yet
+            self._count_deadline(stage)
+            raise deadline_exceeded(stage, pending.budget_s)
         if isinstance(pending.result, BaseException):
             raise pending.result
         assert pending.result is not None
         return pending.result
 
+    def _observe_pass(self, seconds: float, plans: int) -> None:
+        per_plan = seconds / max(plans, 1)
+        previous = self.seconds_per_plan
+        self.seconds_per_plan = per_plan if previous is None else 0.8 * previous + 0.2 * per_plan
+
+    def expected_wait_s(self, extra_plans: int = 0) -> float:
+        """How long ``extra_plans`` more would wait for their pass, from the measured cost of a plan."""
+        return (self.queued_plans + extra_plans) * (self.seconds_per_plan or 0.0)
+
+    def full(self, extra_plans: int = 0) -> str | None:
+        """Why ``extra_plans`` more cannot be queued now (None: they can). A request always may when
+        nothing waits, however large: a lone request is never refused."""
+        if self.queued_plans == 0:
+            return None
+        n = self.queued_plans + extra_plans
+        if self.max_queued_plans is not None and n > self.max_queued_plans:
+            return (f"{self.queued_plans} plans are waiting for a pass; the most that may wait is "
+                    f"{self.max_queued_plans} (setting max_queued_plans); retry later")
+        wait = self.expected_wait_s(extra_plans)
+        if self.max_queue_wait_s and wait > self.max_queue_wait_s:
+            return (f"{self.queued_plans} plans are waiting for a pass, about {wait:.2f} s of work; the longest "
+                    f"wait allowed is {self.max_queue_wait_s:g} s (setting max_queue_wait_s); retry later")
+        return None
+
+    def _set_queued(self, n: int) -> None:
+        self.queued_plans = n
+        if self.metrics is not None:
+            self.metrics.queued_plans.set(n)
+
+    def _count_shed(self) -> None:
+        if self.metrics is not None:
+            self.metrics.shed.labels("queue").inc()
+
+    def _count_deadline(self, stage: str) -> None:
+        if self.metrics is not None:
+            self.metrics.deadline_exceeded.labels(stage).inc()
+
+    def _take(self, item: _Pending) -> _Pending:
+        self._set_queued(self.queued_plans - item.n_plans)
+        return item
+
+    def _live(self, item: _Pending, now: float) -> bool:
+        """False (and the request answered) for a job whose deadline passed while it was queued."""
+        if not item.expired(now):
+            return True
+        if not item.abandoned:  # its waiter has not noticed yet: answer it from here
+            self._count_deadline("queued")
+            item.result = deadline_exceeded("queued", item.budget_s)
+            item.done.set()
+        return False
+
     async def _next_batch(self) -> list[_Pending]:
-        first = self._carry if self._carry is not None else await self._receive.receive()
-        self._carry = None
+        """The next pass's jobs, in queue order; jobs whose deadline passed are answered and skipped."""
+        while True:
+            first = self._carry if self._carry is not None else self._take(await self._receive.receive())
+            self._carry = None
+            if self._live(first, time.monotonic()):
+                break
+        first.taken = True
         batch, n = [first], first.n_plans
         while n < self.max_plans:
             try:
-                item = self._receive.receive_nowait()
+                item = self._take(self._receive.receive_nowait())
             except anyio.WouldBlock:
                 break
+            if not self._live(item, time.monotonic()):
+                continue
             if n + item.n_plans > self.max_plans:
                 self._carry = item  # first in the next batch: order is kept
                 break
+            item.taken = True
             batch.append(item)
             n += item.n_plans
         return batch
@@ -102,11 +197,14 @@ class MicroBatcher:
             while True:
                 batch = await self._next_batch()
                 jobs = [p.job for p in batch]
+                model = self.model  # read once: a hot swap never splits a pass between two bundles
+                started = time.perf_counter()
                 try:
-                    results: list[ModelScores | Exception] = await self.model.run(lambda: self.model.score_jobs(jobs))
+                    results: list[ModelScores | Exception] = await model.run(lambda: model.score_jobs(jobs))
                 except Exception as exc:  # noqa: BLE001 - the pass failed: its requests get the error
                     log.exception("a scoring pass of %d requests failed", len(batch))
                     results = [exc] * len(batch)
+                self._observe_pass(time.perf_counter() - started, sum(p.n_plans for p in batch))
                 if self.metrics is not None:
                     self.metrics.micro_batch.observe(len(batch))
                 for pending, result in zip(batch, results):

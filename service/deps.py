@@ -12,6 +12,8 @@ import numpy as np
 from fastapi import Request, Security
 from fastapi.security import APIKeyHeader
 
+from firp.core.request_log import SCOPE_LOG
+from service.admission import deadline_exceeded, deadline_of, remaining
 from service.errors import ServiceError
 from service.metrics import ServiceMetrics
 from service.scorer import ModelScores, ScoreJob, ServiceModel
@@ -84,13 +86,20 @@ async def score_off_loop(request: Request, model: ServiceModel, endpoint: str, i
                          fields: Sequence[str]) -> ModelScores:
     """Validate the plans, decode the image if its features are not cached, score: all in the
     model's worker thread (one pass at a time), then record the inference metrics. With
-    micro-batching on (:mod:`service.batching`) the job may share its pass with other requests'."""
+    micro-batching on (:mod:`service.batching`) the job may share its pass with other requests'.
+    The request's deadline (:mod:`service.admission`) holds in both paths: work still waiting when it
+    passes is never computed."""
     job = ScoreJob(image_key, load_image, plans, fields)
     batcher = getattr(request.app.state, "batcher", None)
+    deadline = deadline_of(request)
     if batcher is not None:
-        scores = await batcher.submit(job)
+        scores = await batcher.submit(job, deadline)
     else:
         def work() -> ModelScores:
+            left = remaining(deadline)
+            if left is not None and left <= 0:  # waited for the inference token past its budget: drop it
+                metrics_of(request).deadline_exceeded.labels("queued").inc()
+                raise deadline_exceeded("queued", None)
             result = model.score_jobs([job])[0]
             if isinstance(result, BaseException):
                 raise result
@@ -98,4 +107,5 @@ async def score_off_loop(request: Request, model: ServiceModel, endpoint: str, i
 
         scores = await model.run(work)
     metrics_of(request).observe_inference(endpoint, scores.inference_s, len(plans), scores.cache_hit)
+    request.scope.setdefault(SCOPE_LOG, {}).update(model_version=scores.version, plans=len(plans))
     return scores

@@ -6,6 +6,8 @@ with a wrong content type must not be parsed at all (FastAPI would otherwise tre
 and answer with a confusing 422). JSON between systems is UTF-8 (RFC 8259); FastAPI would answer
 other bytes with a bare 400. All answers use the service's one error shape.
 
+A route whose body is optional (the V2 repository's) takes an empty body without a Content-Type.
+
 Only requests that a route will take (path *and* method match) are guarded: a PUT to a POST-only
 path, or any request to an unknown path, goes on to the router for its 405/404, unread.
 
@@ -45,11 +47,12 @@ class RequestGuard:
     """Pure ASGI middleware: content type and body size for requests that carry a body."""
 
     def __init__(self, app: ASGIApp, max_body_bytes: int, routes: Sequence[BaseRoute],
-                 binary_routes: Sequence[BaseRoute] = ()):
+                 binary_routes: Sequence[BaseRoute] = (), optional_body_routes: Sequence[BaseRoute] = ()):
         self.app = app
         self.max_body_bytes = max_body_bytes
         self.routes = tuple(routes)
         self.binary_routes = tuple(binary_routes)
+        self.optional_body_routes = tuple(optional_body_routes)  # an empty body needs no Content-Type
 
     def _routed(self, scope: Scope) -> bool:
         return any(route.matches(scope)[0] == Match.FULL for route in self.routes)
@@ -62,7 +65,10 @@ class RequestGuard:
         content_type = headers.get("content-type")
         v2 = any(route.matches(scope)[0] == Match.FULL for route in self.binary_routes)
         binary = v2 and BINARY_HEADER in headers
-        if not (binary or is_json_media_type(content_type) or (v2 and content_type is None)):
+        empty = headers.get("content-length") in (None, "0") and "transfer-encoding" not in headers
+        optional = empty and content_type is None and any(
+            route.matches(scope)[0] == Match.FULL for route in self.optional_body_routes)
+        if not (binary or optional or is_json_media_type(content_type) or (v2 and content_type is None)):
             got = repr(content_type) if content_type else "no Content-Type"
             await error_response(scope, 415, "Content-Type", "media_type",
                                  f"the body must be JSON (Content-Type: application/json), got {got}")(scope, receive, send)

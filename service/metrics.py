@@ -14,6 +14,12 @@ methods other than the usual seven are ``other``):
 * ``firp_micro_batch_requests`` -- requests per shared forward pass (micro-batching, see
   :mod:`service.batching`);
 * ``firp_feature_cache_total{result}`` -- image feature cache hits and misses;
+* ``firp_shed_requests_total{reason}`` -- scoring requests refused with 503 because the service
+  was full (``concurrency``: admitted requests; ``queue``: plans waiting for a pass), and
+  ``firp_deadline_exceeded_total{stage}`` -- requests answered 504 because their budget ran out
+  (``queued``: dropped before any work; ``running``: the pass was under way), see
+  :mod:`service.admission`; ``firp_admitted_requests`` and ``firp_queued_plans`` -- the two bounded
+  quantities now;
 * ``firp_ready``, ``firp_model_info{name,version,task}`` and in-flight requests.
 """
 
@@ -59,6 +65,13 @@ class ServiceMetrics:
         self.micro_batch = Histogram("firp_micro_batch_requests", "Requests scored together in one forward pass",
                                      buckets=_MICRO_BATCH_BUCKETS, registry=r)
         self.cache = Counter("firp_feature_cache", "Image feature cache lookups", ["result"], registry=r)
+        self.shed = Counter("firp_shed_requests", "Scoring requests refused with 503 because the service was full",
+                            ["reason"], registry=r)
+        self.deadline_exceeded = Counter("firp_deadline_exceeded", "Scoring requests answered 504: budget ran out",
+                                         ["stage"], registry=r)
+        self.admitted = Gauge("firp_admitted_requests", "Scoring requests admitted and not yet answered", registry=r)
+        self.queued_plans = Gauge("firp_queued_plans", "Plans waiting for a forward pass (micro-batching)",
+                                  registry=r)
         self.ready = Gauge("firp_ready", "1 when the bundle is loaded and warmed up", registry=r)
         self.model_info = Gauge("firp_model_info", "The loaded bundle (value 1)", ["name", "version", "task"],
                                 registry=r)

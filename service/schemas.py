@@ -181,12 +181,21 @@ class ErrorResponse(BaseModel):
     error: ErrorDetail
 
 
+class V2ErrorResponse(BaseModel):
+    """Every 4xx/5xx body on the V2 routes: the protocol's ``{"error": "<message>"}``, with the field
+    and the rule beside it."""
+
+    error: str = Field(description="what is wrong, for humans (the Open Inference Protocol's error string)")
+    field: str | None = Field(None, description="the offending part of the request; null if no single part")
+    rule: str = Field(description="short stable name of the rule broken (as in the /v1 error shape)")
+
+
 class HealthResponse(BaseModel):
     status: Literal["alive"] = "alive"
 
 
 class ReadyResponse(BaseModel):
-    status: Literal["ready", "starting", "stopping"]
+    status: Literal["ready", "starting", "draining", "unloaded", "stopping"]
     model: ModelRef | None = None
     warmup_ms: float | None = None
 
@@ -301,8 +310,12 @@ class V2InferRequest(_Request):
     }]})
 
     id: str | None = Field(None, max_length=128)
+    model_name: str | None = Field(None, max_length=256, description="sent by some V2 clients (KServe's); if "
+                                   "given, it must equal the path's model")
+    model_version: str | None = Field(None, max_length=256, description="if given, the model's version")
     parameters: dict[str, Any] | None = Field(
-        None, description="binary_data_output: true returns every output not asking otherwise as raw bytes")
+        None, description="binary_data_output: true returns every output not asking otherwise as raw bytes; "
+                          "timeout: microseconds (0: none) -- work still queued when it ends is answered 504")
     inputs: list[V2RequestInput] = Field(json_schema_extra={"minItems": 1})
     outputs: list[V2RequestOutput] | None = None
 

@@ -130,6 +130,8 @@ class ModelScores:
     threshold: float
     inference_s: float  # time in the backbone + members (not decoding, not validation)
     cache_hit: bool
+    name: str = ""  # the bundle that scored them: after a hot swap, not necessarily the one a route saw first
+    version: str = ""
 
 
 class ServiceModel:
@@ -315,7 +317,7 @@ class ServiceModel:
         for j, (probs, spread, success, members, attention) in parts.items():
             steps = failure_steps(attention, success.tolist())
             out[j] = ModelScores(probs, members, spread, success, steps, attention, self.scorer.threshold, elapsed,
-                                 hits[j])
+                                 hits[j], self.name, self.version)
         return out  # type: ignore[return-value]
 
 

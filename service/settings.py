@@ -10,6 +10,7 @@ the environment.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -51,14 +52,40 @@ class ServiceSettings(BaseSettings):
     micro_batch: bool = Field(True, description="score concurrent requests together in one forward pass (requests "
                               "that queued while the previous pass ran; a lone request is never delayed)")
     micro_batch_max_plans: int = Field(64, ge=1, le=4096, description="most plans in one shared forward pass")
+    max_concurrent_requests: int = Field(64, ge=1, le=100_000, description="scoring requests admitted at once; "
+                                         "one more gets 503 with Retry-After (health, readiness, metrics: never)")
+    max_queued_plans: int = Field(256, ge=1, le=1_000_000, description="plans waiting for a forward pass at most; a "
+                                  "request that would exceed it gets 503 with Retry-After")
+    max_queue_wait_s: float = Field(0.25, ge=0.0, le=3600.0, description="a request whose plans would wait longer "
+                                    "than this for their pass (from the measured cost of a plan) gets 503 with "
+                                    "Retry-After; when the queue is already that long, before its body is read "
+                                    "(0: no bound)")
+    request_timeout_s: float = Field(30.0, ge=0.0, le=3600.0, description="a scoring request's default time "
+                                     "budget (0: none); X-Request-Timeout or V2 parameters.timeout may shorten it; "
+                                     "work still queued when it ends is dropped and answered 504")
+    drain_grace_s: float = Field(20.0, ge=0.0, le=3600.0, description="on SIGTERM: readiness 503 at once, admitted "
+                                 "work is answered for at most this long, then exit 0 (keep it below the "
+                                 "orchestrator's grace period: compose's stop_grace_period is 30 s)")
+    drain_notice_s: float = Field(1.0, ge=0.0, le=600.0, description="on SIGTERM, readiness answers 503 for at "
+                                  "least this long before the socket closes, even when idle, so that a load "
+                                  "balancer's probe sees it and stops routing here")
+    retry_after_s: int = Field(1, ge=0, le=3600, description="Retry-After (seconds) on a 503 for overload")
     cors_origins: list[str] = Field(default_factory=list, description="CORS allow-list; empty: no CORS")
     log_level: str = "info"
-    access_log: bool = True
+    log_format: Literal["text", "json"] = Field("text", description="json: every log record, and one line per "
+                                                "request (time, request id, route, status, latency, model "
+                                                "version, plans), as one JSON object per line")
+    access_log: bool = Field(True, description="one log line per request")
 
     @model_validator(mode="after")
     def _image_limits_consistent(self) -> ServiceSettings:
         if self.min_image_side > self.max_image_side:
             raise ValueError(f"min_image_side {self.min_image_side} > max_image_side {self.max_image_side}")
+        if self.drain_notice_s > self.drain_grace_s:
+            raise ValueError(f"drain_notice_s {self.drain_notice_s} > drain_grace_s {self.drain_grace_s}")
+        if self.max_queued_plans < self.max_batch:
+            raise ValueError(f"max_queued_plans {self.max_queued_plans} < max_batch {self.max_batch}: a request of "
+                             "max_batch plans could never be queued")
         return self
 
     @property

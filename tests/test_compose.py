@@ -142,3 +142,22 @@ def test_mujoco_images_have_the_gl_libraries_and_egl(compose, name):
 def test_makefile_installs_docker_compose_for_ci():
     apt = re.search(r"^APT_PACKAGES := (.*)$", (ROOT / "Makefile").read_text(), re.M).group(1).split()
     assert "docker-compose" in apt and set(GL_LIBS.split()) <= set(apt)
+
+
+def _seconds(duration: str) -> float:
+    """compose's duration (``30s``, ``1m30s``) in seconds."""
+    parts = re.fullmatch(r"(?:(\d+)m)?(?:(\d+(?:\.\d+)?)s)?", duration)
+    assert parts and duration, f"not a compose duration: {duration!r}"
+    return 60 * float(parts.group(1) or 0) + float(parts.group(2) or 0)
+
+
+def test_the_services_drain_ends_before_composes_sigkill(compose):
+    """SIGTERM drains for drain_grace_s (the compose file's, else the setting's default); compose
+    SIGKILLs after stop_grace_period (default 10 s): the drain and uvicorn's shutdown must fit."""
+    from service.settings import ServiceSettings
+
+    service = compose["services"]["service"]
+    grace = float(service["environment"].get("FIRP_SERVICE_DRAIN_GRACE_S",
+                                             ServiceSettings.model_fields["drain_grace_s"].default))
+    stop = _seconds(service.get("stop_grace_period", "10s"))
+    assert grace + 5 <= stop, f"drain {grace} s + 5 s of shutdown > stop_grace_period {stop} s"

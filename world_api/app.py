@@ -22,6 +22,7 @@ from fastapi import FastAPI, Request, Response
 from firp.core import http_errors
 from firp.core.contract import JOINT_NAMES, validate_plan
 from firp.core.http_errors import ApiError, error_response
+from firp.core.request_log import RequestLog
 from world_api.backend import WorldBackend
 from world_api.runner import WorldRunner
 from world_api.schemas import (
@@ -91,6 +92,7 @@ def create_world_app(backend: WorldBackend, settings: WorldSettings, clock: Call
 
     app = FastAPI(title=title, version="1", lifespan=lifespan, description=__doc__.split("\n\n")[0])
     http_errors.install_error_handlers(app, log)
+    app.add_middleware(RequestLog, logger=f"{backend.name}.access")  # the request id, one log line per request
 
     def state_of(request: Request) -> _State:
         return request.app.state.sim

@@ -12,7 +12,8 @@ from world_api.settings import WorldSettings
 __all__ = ["add_serve_parser", "serve"]
 
 #: flag destination -> settings field (the same names)
-_FLAGS = ("host", "port", "image_size", "pose_error_mm", "pose_error_deg", "max_episodes", "episode_ttl_seconds")
+_FLAGS = ("host", "port", "image_size", "pose_error_mm", "pose_error_deg", "max_episodes", "episode_ttl_seconds",
+          "log_format")
 
 
 def add_serve_parser(sub: argparse._SubParsersAction, settings: type[WorldSettings], what: str) -> argparse.ArgumentParser:
@@ -39,6 +40,8 @@ def add_serve_parser(sub: argparse._SubParsersAction, settings: type[WorldSettin
     s.add_argument("--episode-ttl-seconds", type=non_negative_float("--episode-ttl-seconds"), default=None,
                    help=f"episode lifetime ({default('episode_ttl_seconds')})")
     s.add_argument("--log-level", choices=("critical", "error", "warning", "info", "debug"), default="info")
+    s.add_argument("--log-format", choices=("text", "json"), default=None,
+                   help=f"json: one JSON object per log line, one line per request ({default('log_format')})")
     return s
 
 
@@ -54,5 +57,10 @@ def serve(args: argparse.Namespace, settings: type[WorldSettings], create_app: C
         prefix = settings.model_config["env_prefix"]
         print(f"error: invalid settings (flags or {prefix}* variables):\n{exc}", file=sys.stderr)
         return 2
-    uvicorn.run(create_app(resolved), host=resolved.host, port=resolved.port, log_level=args.log_level)
+    from firp.core.request_log import configure_logging
+
+    configure_logging(args.log_level, resolved.log_format)
+    # uvicorn's loggers propagate to the root handler; the request lines are firp.core.request_log's
+    uvicorn.run(create_app(resolved), host=resolved.host, port=resolved.port, log_level=args.log_level,
+                access_log=False, log_config=None)
     return 0

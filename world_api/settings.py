@@ -8,6 +8,8 @@ worker, not of a request -- except the pose error, which a request may override 
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
@@ -25,3 +27,5 @@ class WorldSettings(BaseSettings):
     max_episodes: int = Field(1024, ge=1, description="episodes kept at once; the oldest is evicted beyond")
     episode_ttl_seconds: float = Field(3600.0, gt=0.0, allow_inf_nan=False,
                                        description="an episode expires this long after it was created")
+    log_format: Literal["text", "json"] = Field("text", description="json: one JSON object per log line, one "
+                                                "line per request (time, request id, route, status, latency)")

@@ -10,6 +10,10 @@ for humans. It sits beside :mod:`firp.core.contract`, whose :class:`~firp.core.c
 both services report through it; it needs FastAPI but neither torch nor mujoco, so each service
 imports it without the other's heavy dependencies.
 
+The Open Inference Protocol (V2) specifies its own error body, ``{"error": "<message>"}``, which V2
+clients (Triton's, KServe's) read: on the ``/v2`` routes the message is the ``error`` string and
+``field`` and ``rule`` stand beside it, so the same three facts reach every client.
+
 FastAPI's own 422s (pydantic), Starlette's 404/405, the contract's plan errors, :class:`ApiError`
 raised by a route and unexpected exceptions are all converted into the shape by
 :func:`install_error_handlers`. Every error response also records its rule in the ASGI scope
@@ -30,7 +34,7 @@ from starlette.types import Scope
 
 from firp.core.contract import PlanValidationError
 
-__all__ = ["SCOPE_RULE", "STATUS_RULES", "ApiError", "error_content", "error_response", "field_from_loc",
+__all__ = ["SCOPE_RULE", "STATUS_RULES", "V2_PREFIX", "ApiError", "error_content", "error_response", "field_from_loc",
            "install_error_handlers"]
 
 #: ASGI scope key under which an error response records its rule (read by service.metrics).
@@ -48,6 +52,10 @@ STATUS_RULES = {
 }
 
 
+#: Paths under this prefix answer errors in the V2 protocol's shape.
+V2_PREFIX = "/v2"
+
+
 class ApiError(Exception):
     """A request an API refuses on purpose: HTTP ``status`` plus the error shape's three fields."""
 
@@ -61,16 +69,27 @@ class ApiError(Exception):
         self.headers = headers
 
 
-def error_content(field: str | None, rule: str, message: str) -> dict[str, Any]:
+def error_content(field: str | None, rule: str, message: str, v2: bool = False) -> dict[str, Any]:
+    """The error body: ``{"error": {field, rule, message}}``, or on V2 routes
+    ``{"error": message, "field": ..., "rule": ...}``."""
+    if v2:
+        return {"error": message, "field": field, "rule": rule}
     return {"error": {"field": field, "rule": rule, "message": message}}
+
+
+def is_v2_path(path: str) -> bool:
+    return path == V2_PREFIX or path.startswith(V2_PREFIX + "/")
 
 
 def error_response(scope: Scope | None, status: int, field: str | None, rule: str, message: str,
                    headers: dict[str, str] | None = None) -> JSONResponse:
-    """The one error shape as a response; records ``rule`` in ``scope`` (when given) for metrics."""
+    """The error shape of the request's route as a response; records ``rule`` in ``scope`` (when
+    given) for metrics."""
+    v2 = False
     if scope is not None:
         scope[SCOPE_RULE] = rule
-    return JSONResponse(error_content(field, rule, message), status_code=status, headers=headers)
+        v2 = is_v2_path(scope.get("path", ""))
+    return JSONResponse(error_content(field, rule, message, v2), status_code=status, headers=headers)
 
 
 def field_from_loc(loc: Sequence[str | int]) -> str:

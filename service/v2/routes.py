@@ -9,6 +9,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse, Response
 
 from firp.core.contract import PLAN_WIDTH
+from service.admission import MAX_TIMEOUT_S, tighten_deadline
 from service.deps import ready_model, score_off_loop, settings_of
 from service.errors import ServiceError, error_responses
 from service.images import ImageLimits
@@ -46,9 +47,9 @@ _INFER_RESPONSES: dict[int | str, dict[str, Any]] = {
     200: {"description": "JSON, or with any binary output the binary tensor extension's framing: a JSON header of "
                          "Inference-Header-Content-Length bytes, then the binary outputs' bytes",
           "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}},
-    **error_responses(400, 401, 404, 413, 415, 422, 503),
+    **error_responses(400, 401, 404, 413, 415, 422, 503, 504, v2=True),
 }
-_GET_ERRORS = error_responses(401, 404, 503)
+_GET_ERRORS = error_responses(401, 404, 503, v2=True)
 
 
 def _named_model(request: Request, name: str, version: str | None = None) -> ServiceModel:
@@ -59,6 +60,17 @@ def _named_model(request: Request, name: str, version: str | None = None) -> Ser
         raise ServiceError(404, "model_version", "unknown_version",
                            f"model {model.name!r} is at version {model.version!r}, not {version!r}")
     return model
+
+
+def _timeout_parameter(parameters: dict[str, Any] | None) -> float | None:
+    """``parameters.timeout``: microseconds, an integer >= 0 (0: none), as Triton's schedule-policy extension."""
+    value = (parameters or {}).get("timeout")
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_TIMEOUT_S * 1e6:
+        raise ServiceError(422, "parameters.timeout", "timeout", "parameters.timeout is microseconds, an integer in "
+                           f"[0, {int(MAX_TIMEOUT_S * 1e6)}] (0: no timeout), got {value!r}")
+    return value / 1e6 if value else None
 
 
 def _metadata(model: ServiceModel) -> V2ModelMetadata:
@@ -92,7 +104,7 @@ def v2_router(guarded: list[Any]) -> APIRouter:
         is_ready = request.app.state.phase == "ready"
         return JSONResponse(V2Ready(ready=is_ready).model_dump(), status_code=200 if is_ready else 503)
 
-    @router.get("", response_model=V2ServerMetadata, dependencies=guarded, responses=error_responses(401),
+    @router.get("", response_model=V2ServerMetadata, dependencies=guarded, responses=error_responses(401, v2=True),
                 summary="V2 server metadata")
     async def server_metadata() -> V2ServerMetadata:
         return V2ServerMetadata(name=SERVER_NAME, version=SERVER_VERSION, extensions=[BINARY_EXTENSION])
@@ -112,9 +124,25 @@ def v2_router(guarded: list[Any]) -> APIRouter:
     async def model_ready(name: str, request: Request) -> V2ModelReady:
         return V2ModelReady(name=_named_model(request, name).name, ready=True)
 
+    @router.get("/models/{name}/versions/{version}/ready", response_model=V2ModelReady, dependencies=guarded,
+                responses=_GET_ERRORS, summary="V2 model ready (one version)")
+    async def model_version_ready(name: str, version: str, request: Request) -> V2ModelReady:
+        return V2ModelReady(name=_named_model(request, name, version).name, ready=True)
+
     async def infer(name: str, version: str | None, body: V2InferRequest, request: Request) -> Response:
         start = time.perf_counter()
         model = _named_model(request, name, version)
+        # KServe's client repeats the path's model in the body; it must agree with the path
+        for key, value, in_path in (("model_name", body.model_name, name), ("model_version", body.model_version, version)):
+            if value is not None and in_path is not None and value != in_path:
+                raise ServiceError(422, key, "path_mismatch", f"{key} {value!r} in the body differs from the path's "
+                                   f"{in_path!r}")
+            if key == "model_version" and value is not None and in_path is None and value != model.version:
+                raise ServiceError(404, key, "unknown_version",
+                                   f"model {model.name!r} is at version {model.version!r}, not {value!r}")
+        budget = _timeout_parameter(body.parameters)
+        if budget is not None:
+            tighten_deadline(request, budget)
         settings = settings_of(request)
         limits = ImageLimits.from_settings(settings)
         seen: dict[str, int] = {}
@@ -148,7 +176,7 @@ def v2_router(guarded: list[Any]) -> APIRouter:
         plans, fields = plan_input(body.inputs[i_plan], f"inputs[{i_plan}]", settings.max_batch, raws[i_plan])
         scores = await score_off_loop(request, model, "/v2/infer", key, load_image, plans, fields)
         head: dict[str, Any] = {
-            "model_name": model.name, "model_version": model.version, "id": body.id,
+            "model_name": scores.name or model.name, "model_version": scores.version or model.version, "id": body.id,
             "parameters": {"threshold": scores.threshold, "elapsed_ms": (time.perf_counter() - start) * 1000.0},
         }
         return response(head, scores, wanted)

@@ -35,11 +35,11 @@ class Seen:
 
 @dataclass
 class StubServer:
-    """A loopback HTTP server answering from a script of ``(status, json_body)``; the last entry
+    """A loopback HTTP server answering from a script of ``(status, json_body[, headers])``; the last entry
     repeats. It records every request it sees, so tests can count retries and read what was sent.
     This is a transport stub for testing the clients' retry behaviour, not a model of any service."""
 
-    script: list[tuple[int, object]]
+    script: list[tuple]
     seen: list[Seen] = field(default_factory=list)
     server: ThreadingHTTPServer | None = None
 
@@ -59,9 +59,11 @@ class StubServer:
                 raw = self.rfile.read(length) if length else b""
                 stub.seen.append(Seen(self.command, self.path, dict(self.headers),
                                       json.loads(raw) if raw else None, time.monotonic()))
-                status, body = stub.script[min(len(stub.seen), len(stub.script)) - 1]
+                status, body, *extra = stub.script[min(len(stub.seen), len(stub.script)) - 1]
                 data = json.dumps(body).encode()
                 self.send_response(status)
+                for name, value in (extra[0] if extra else {}).items():
+                    self.send_header(name, value)
                 self.send_header("content-type", "application/json")
                 self.send_header("content-length", str(len(data)))
                 self.end_headers()

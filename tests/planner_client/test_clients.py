@@ -13,7 +13,7 @@ from planner_client.clients import ScoreClient, SimClient
 from planner_client.embedded import EmbeddedSim
 from planner_client.loop import RunConfig, read_records, run_trials
 from planner_client.tamp import PlannerConfig, TampPlanner
-from planner_client.transport import RequestRejected, RetryPolicy, ServiceUnavailable
+from planner_client.transport import RequestRejected, RetryPolicy, ServiceUnavailable, request_id
 
 from .conftest import refusing_socket
 
@@ -109,6 +109,33 @@ def test_score_retries_5xx_with_growing_waits_then_returns_the_answer(stub):
         assert seen.headers.get("X-API-Key") == "k3y"
     gaps = np.diff([s.at for s in server.seen])
     assert gaps[0] >= 0.05 and gaps[1] >= 0.10  # base_delay, then doubled
+
+
+def test_a_shedding_service_is_retried_after_its_retry_after(stub):
+    """A 503 with Retry-After (the service's load shedding): the next try waits that long, not the
+    policy's 50 ms; the client sends its own time budget, so the service drops what it gives up on."""
+    shed = {"error": {"field": None, "rule": "overloaded", "message": "full"}}
+    server = stub([(503, shed, {"Retry-After": "1"}), (200, SCORE)])
+    with ScoreClient(server.url, retry=FAST, timeout=7.5) as scorer:
+        assert scorer.score("aW1n", _plan(), "stacking") == SCORE
+    assert len(server.seen) == 2 and server.seen[1].at - server.seen[0].at >= 1.0
+    assert all(s.headers.get("X-Request-Timeout") == "7.5" for s in server.seen)
+
+
+def test_calls_carry_the_request_id_of_the_work_they_belong_to(stub):
+    server = stub([(200, SCORE)])
+    with ScoreClient(server.url, retry=FAST) as scorer:
+        with request_id("trial-4-0123456789ab"):
+            scorer.score("aW1n", _plan(), "stacking")
+        scorer.score("aW1n", _plan(), "stacking")
+    assert server.seen[0].headers.get("X-Request-ID") == "trial-4-0123456789ab"
+    assert "X-Request-ID" not in server.seen[1].headers  # outside any: the service generates one
+
+
+def test_retry_after_is_capped_and_never_shortens_the_backoff():
+    policy = RetryPolicy(base_delay=0.5, max_delay=4.0, max_retry_after=10.0)
+    assert policy.delay(1, None) == 0.5 and policy.delay(1, 0.1) == 0.5
+    assert policy.delay(1, 3.0) == 3.0 and policy.delay(2, 3600.0) == 10.0
 
 
 def test_4xx_is_raised_at_once_with_the_services_details(stub):

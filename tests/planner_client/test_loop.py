@@ -100,6 +100,9 @@ def test_records_are_written_as_trials_end_and_resume_skips_them(tmp_path, sim_a
     assert [r["trial"] for r in records] == [0, 1, 2]
     assert all(json.loads(line) for line in out.read_text().splitlines())
     assert summarise(records)["trials"] == 3
+    # each trial's calls carried its own X-Request-ID, kept in its record
+    assert [r["request_id"].split("-")[:2] for r in records] == [["trial", "0"], ["trial", "1"], ["trial", "2"]]
+    assert len({r["request_id"] for r in records}) == 3
 
 
 def test_existing_output_needs_resume(tmp_path, sim_and_planner):

@@ -43,10 +43,27 @@ def test_model_metadata_and_readiness(client):
     assert shapes["member_scores"] == [-1, 3] and shapes["score"] == [-1]
     assert client.get(f"/v2/models/tiny/versions/{version}").json() == meta
     assert client.get("/v2/models/tiny/ready").json() == {"name": "tiny", "ready": True}
+    assert client.get(f"/v2/models/tiny/versions/{version}/ready").json() == {"name": "tiny", "ready": True}
     r = client.get("/v2/models/other")
-    assert r.status_code == 404 and r.json()["error"]["rule"] == "unknown_model"
-    r = client.get("/v2/models/tiny/versions/000000000000")
-    assert r.status_code == 404 and r.json()["error"]["field"] == "model_version"
+    assert r.status_code == 404 and r.json()["rule"] == "unknown_model"
+    # the protocol's error body: {"error": "<message>"}, the field and the rule beside it
+    assert isinstance(r.json()["error"], str) and "'other'" in r.json()["error"]
+    for path in ("/v2/models/tiny/versions/000000000000", "/v2/models/tiny/versions/000000000000/ready"):
+        r = client.get(path)
+        assert r.status_code == 404 and r.json()["field"] == "model_version" and isinstance(r.json()["error"], str)
+
+
+def test_the_body_may_repeat_the_paths_model_as_kserves_client_sends_it(client):
+    version = client.get("/v1/model").json()["version"]
+    body = _infer_body(random_image(40, seed=1), valid_plans(1, 9, seed=2))
+    r = client.post("/v2/models/tiny/infer", json={**body, "model_name": "tiny", "model_version": version})
+    assert r.status_code == 200, r.text
+    r = client.post("/v2/models/tiny/infer", json={**body, "model_name": "other"})
+    assert r.status_code == 422 and (r.json()["field"], r.json()["rule"]) == ("model_name", "path_mismatch")
+    r = client.post(f"/v2/models/tiny/versions/{version}/infer", json={**body, "model_version": "0"})
+    assert r.status_code == 422 and (r.json()["field"], r.json()["rule"]) == ("model_version", "path_mismatch")
+    r = client.post("/v2/models/tiny/infer", json={**body, "model_version": "0"})
+    assert r.status_code == 404 and (r.json()["field"], r.json()["rule"]) == ("model_version", "unknown_version")
 
 
 def test_infer_round_trip_equals_the_ensemble(client, tiny_bundle):
@@ -154,4 +171,4 @@ def test_bad_tensors_are_4xx_naming_field_and_rule(client, case):
     _, body, status, field, rule = case
     r = client.post("/v2/models/tiny/infer", json=body)
     assert r.status_code == status, r.text
-    assert (r.json()["error"]["field"], r.json()["error"]["rule"]) == (field, rule), r.json()
+    assert (r.json()["field"], r.json()["rule"]) == (field, rule), r.json()

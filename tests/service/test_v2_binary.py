@@ -184,7 +184,7 @@ def test_malformed_binary_bodies_are_4xx_in_the_error_shape(client, case):
     _, kwargs, status, field, rule = case
     r = client.post("/v2/models/tiny/infer", **kwargs)
     assert r.status_code == status, r.text
-    assert (r.json()["error"]["field"], r.json()["error"]["rule"]) == (field, rule), r.json()
+    assert (r.json()["field"], r.json()["rule"]) == (field, rule), r.json()
 
 
 def test_a_binary_body_is_not_taken_by_the_v1_routes(client):
@@ -195,7 +195,7 @@ def test_a_binary_body_is_not_taken_by_the_v1_routes(client):
 def test_the_body_limit_holds_for_binary_bodies(client, settings):
     big = b"\0" * (settings.max_body_bytes + 1)
     r = client.post("/v2/models/tiny/infer", content=big, headers={HEADER: "0"})
-    assert r.status_code == 413 and r.json()["error"]["rule"] == "max_body_bytes"
+    assert r.status_code == 413 and r.json()["rule"] == "max_body_bytes"
 
 
 # ------------------------------------------------------------------------------------------------

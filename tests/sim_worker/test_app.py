@@ -79,6 +79,14 @@ def test_health_and_readiness(client):
                                               "not_inside", "unstable"], "image_size": 84}
 
 
+def test_requests_carry_a_request_id(client):
+    """The planner's trial id is echoed (the worker's log line has it); a missing one is generated."""
+    assert client.get("/healthz", headers={"X-Request-ID": "trial-2-00ff"}).headers["X-Request-ID"] == "trial-2-00ff"
+    assert len(client.get("/healthz").headers["X-Request-ID"]) == 32
+    bad = client.get("/healthz", headers={"X-Request-ID": "no spaces"})
+    assert bad.status_code == 400 and bad.json()["error"]["field"] == "X-Request-ID"
+
+
 @pytest.mark.parametrize("task,seed", [("stacking", 11), ("replacement", 12)])
 def test_episode_image_and_observation_are_the_datasets(client, planner, task, seed):
     """frame 0 of a collected episode (same task, seed, default 84 px camera) is the episode's image,
