@@ -51,7 +51,9 @@ class SimClient:
 
     def __init__(self, base_url: str, *, pose_error_mm: float | None = None, pose_error_deg: float | None = None,
                  timeout: float = 120.0, connect_timeout: float = 3.0, retry: RetryPolicy = RetryPolicy()):
-        self.http = JsonHttp("sim worker", base_url, timeout=timeout, connect_timeout=connect_timeout, retry=retry)
+        # the worker drops a call still queued when this client would have given up on it anyway
+        self.http = JsonHttp("sim worker", base_url, timeout=timeout, connect_timeout=connect_timeout, retry=retry,
+                             headers={"X-Request-Timeout": f"{timeout:g}"})
         self.pose_error_mm = pose_error_mm
         self.pose_error_deg = pose_error_deg
 

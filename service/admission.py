@@ -26,7 +26,6 @@ clients' complaints.
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable, Sequence
 
@@ -35,6 +34,7 @@ from starlette.datastructures import Headers
 from starlette.routing import BaseRoute, Match
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from firp.core.deadlines import MAX_TIMEOUT_S, TIMEOUT_HEADER, deadline_exceeded, parse_timeout
 from service.errors import ServiceError, error_response
 from service.metrics import ServiceMetrics
 
@@ -45,30 +45,10 @@ __all__ = ["AdmissionControl", "InFlight", "MAX_TIMEOUT_S", "SCOPE_DEADLINE", "T
 SCOPE_DEADLINE = "firp.deadline"
 #: when the request arrived (``time.monotonic()``), in the ASGI scope
 SCOPE_ARRIVAL = "firp.arrival"
-TIMEOUT_HEADER = "X-Request-Timeout"
-#: the longest budget a request may ask for (an hour): a larger one is a client's bug
-MAX_TIMEOUT_S = 3600.0
 
 
 def overloaded(message: str, retry_after_s: int) -> ServiceError:
     return ServiceError(503, None, "overloaded", message, headers={"Retry-After": str(retry_after_s)})
-
-
-def deadline_exceeded(stage: str, budget_s: float | None) -> ServiceError:
-    budget = f" of {budget_s:.3g} s" if budget_s is not None else ""
-    return ServiceError(504, None, "deadline_exceeded", f"the request's time budget{budget} ran out while it was {stage}")
-
-
-def parse_timeout(value: str) -> float:
-    """``X-Request-Timeout``: seconds, a positive finite number no larger than :data:`MAX_TIMEOUT_S`."""
-    try:
-        seconds = float(value)
-    except ValueError:
-        seconds = math.nan
-    if not (math.isfinite(seconds) and 0.0 < seconds <= MAX_TIMEOUT_S):
-        raise ServiceError(400, TIMEOUT_HEADER, "timeout",
-                           f"{TIMEOUT_HEADER} must be seconds in (0, {MAX_TIMEOUT_S:g}], got {value!r}")
-    return seconds
 
 
 def deadline_of(request: Request) -> float | None:

@@ -151,13 +151,17 @@ def _seconds(duration: str) -> float:
     return 60 * float(parts.group(1) or 0) + float(parts.group(2) or 0)
 
 
-def test_the_services_drain_ends_before_composes_sigkill(compose):
+@pytest.mark.parametrize("name, variable", [("service", "FIRP_SERVICE_DRAIN_GRACE_S"),
+                                            ("sim_worker", "FIRP_SIM_DRAIN_GRACE_S"),
+                                            ("robosuite_worker", "FIRP_ROBOSUITE_DRAIN_GRACE_S")])
+def test_each_drain_ends_before_composes_sigkill(compose, name, variable):
     """SIGTERM drains for drain_grace_s (the compose file's, else the setting's default); compose
     SIGKILLs after stop_grace_period (default 10 s): the drain and uvicorn's shutdown must fit."""
     from service.settings import ServiceSettings
+    from world_api.settings import WorldSettings
 
-    service = compose["services"]["service"]
-    grace = float(service["environment"].get("FIRP_SERVICE_DRAIN_GRACE_S",
-                                             ServiceSettings.model_fields["drain_grace_s"].default))
+    settings = ServiceSettings if name == "service" else WorldSettings
+    service = compose["services"][name]
+    grace = float(service["environment"].get(variable, settings.model_fields["drain_grace_s"].default))
     stop = _seconds(service.get("stop_grace_period", "10s"))
-    assert grace + 5 <= stop, f"drain {grace} s + 5 s of shutdown > stop_grace_period {stop} s"
+    assert grace + 5 <= stop, f"{name}: drain {grace} s + 5 s of shutdown > stop_grace_period {stop} s"

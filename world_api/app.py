@@ -21,6 +21,7 @@ from fastapi import FastAPI, Request, Response
 
 from firp.core import http_errors
 from firp.core.contract import JOINT_NAMES, validate_plan
+from firp.core.deadlines import TIMEOUT_HEADER, parse_timeout
 from firp.core.http_errors import ApiError, error_response
 from firp.core.request_log import RequestLog
 from world_api.backend import WorldBackend
@@ -31,7 +32,7 @@ from world_api.schemas import (
 from world_api.settings import WorldSettings
 from world_api.store import EpisodeStore, StoredEpisode
 
-ERRORS = {code: {"model": ErrorResponse} for code in (404, 422, 500, 503)}
+ERRORS = {code: {"model": ErrorResponse} for code in (400, 404, 422, 500, 503, 504)}
 
 
 def _timestamp(seconds: float) -> datetime:
@@ -55,7 +56,8 @@ class _State:
     def __init__(self, backend: WorldBackend, settings: WorldSettings, clock: Callable[[], float],
                  log: logging.Logger):
         self.settings = settings
-        self.runner = WorldRunner(backend)
+        self.runner = WorldRunner(backend, settings.max_queued)
+        self.draining = False  # SIGTERM (firp.core.draining): readiness 503, no new work
         self.store = EpisodeStore(settings.max_episodes, settings.episode_ttl_seconds, clock)
         self.ready = False
         self.warm_up_error: str | None = None
@@ -97,6 +99,15 @@ def create_world_app(backend: WorldBackend, settings: WorldSettings, clock: Call
     def state_of(request: Request) -> _State:
         return request.app.state.sim
 
+    def admit(request: Request) -> float | None:
+        """The call's deadline (``X-Request-Timeout``, else the default budget), or 503 while draining."""
+        if state_of(request).draining:
+            raise ApiError(503, None, "not_ready", "the worker is draining (stopping); start the episode on "
+                           "another worker", headers={"Retry-After": "1"})
+        header = request.headers.get(TIMEOUT_HEADER)
+        budget = parse_timeout(header) if header is not None else (settings.request_timeout_s or None)
+        return None if budget is None else time.monotonic() + budget
+
     @app.get("/healthz", response_model=Health)
     async def healthz() -> dict:
         return {"status": "ok"}
@@ -104,6 +115,8 @@ def create_world_app(backend: WorldBackend, settings: WorldSettings, clock: Call
     @app.get("/readyz", response_model=Ready, responses={503: {"model": ErrorResponse}})
     async def readyz(request: Request):
         state = state_of(request)
+        if state.draining:
+            return error_response(request.scope, 503, None, "draining", "stopping: admitted work is being finished")
         if not state.ready:
             message = (f"warm-up failed: {state.warm_up_error}" if state.warm_up_error
                        else "building the worlds and rendering once")
@@ -114,9 +127,10 @@ def create_world_app(backend: WorldBackend, settings: WorldSettings, clock: Call
     @app.post("/v1/episodes", response_model=EpisodeResponse, status_code=201, responses=ERRORS)
     async def create_episode(body: EpisodeRequest, request: Request) -> dict:  # type: ignore[valid-type]
         state = state_of(request)
+        deadline = admit(request)
         mm = settings.pose_error_mm if body.pose_error_mm is None else body.pose_error_mm
         deg = settings.pose_error_deg if body.pose_error_deg is None else body.pose_error_deg
-        start, image_b64 = await state.runner.begin(body.task, body.seed, float(mm), float(deg))
+        start, image_b64 = await state.runner.begin(body.task, body.seed, float(mm), float(deg), deadline)
         episode = state.store.add(start, (float(mm), float(deg)), image_b64)
         return episode_response(episode, backend.image_size)
 
@@ -133,9 +147,10 @@ def create_world_app(backend: WorldBackend, settings: WorldSettings, clock: Call
               response_model_exclude_none=True, responses=ERRORS)
     async def execute(episode_id: str, body: ExecuteRequest, request: Request) -> dict:
         state = state_of(request)
+        deadline = admit(request)
         episode = stored(state, episode_id)
         plan = validate_plan(body.plan)  # PlanValidationError -> 422 with the contract's field and rule
-        run = await state.runner.execute(episode.start, plan, body.record_frames)
+        run = await state.runner.execute(episode.start, plan, body.record_frames, deadline)
         o = run.outcome
         return {"episode_id": episode_id, "success": bool(o.success), "reason": o.reason, "kind": o.kind,
                 "final_blocks": o.final_blocks, "sim_seconds": o.sim_seconds, "unstable": bool(o.unstable),

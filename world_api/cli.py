@@ -13,7 +13,7 @@ __all__ = ["add_serve_parser", "serve"]
 
 #: flag destination -> settings field (the same names)
 _FLAGS = ("host", "port", "image_size", "pose_error_mm", "pose_error_deg", "max_episodes", "episode_ttl_seconds",
-          "log_format")
+          "max_queued", "log_format")
 
 
 def add_serve_parser(sub: argparse._SubParsersAction, settings: type[WorldSettings], what: str) -> argparse.ArgumentParser:
@@ -39,6 +39,8 @@ def add_serve_parser(sub: argparse._SubParsersAction, settings: type[WorldSettin
                    help=f"episodes kept at once, oldest evicted ({default('max_episodes')})")
     s.add_argument("--episode-ttl-seconds", type=non_negative_float("--episode-ttl-seconds"), default=None,
                    help=f"episode lifetime ({default('episode_ttl_seconds')})")
+    s.add_argument("--max-queued", type=int_in_range("--max-queued", 1, 100_000), default=None,
+                   help=f"calls waiting or running at once; one more gets 503 ({default('max_queued')})")
     s.add_argument("--log-level", choices=("critical", "error", "warning", "info", "debug"), default="info")
     s.add_argument("--log-format", choices=("text", "json"), default=None,
                    help=f"json: one JSON object per log line, one line per request ({default('log_format')})")
@@ -59,8 +61,18 @@ def serve(args: argparse.Namespace, settings: type[WorldSettings], create_app: C
         return 2
     from firp.core.request_log import configure_logging
 
+    from firp.core.draining import DrainingServer
+
     configure_logging(args.log_level, resolved.log_format)
+    app = create_app(resolved)
+
+    def begin_drain() -> None:
+        app.state.sim.draining = True
+
     # uvicorn's loggers propagate to the root handler; the request lines are firp.core.request_log's
-    uvicorn.run(create_app(resolved), host=resolved.host, port=resolved.port, log_level=args.log_level,
-                access_log=False, log_config=None)
-    return 0
+    config = uvicorn.Config(app, host=resolved.host, port=resolved.port, log_level=args.log_level, access_log=False,
+                            log_config=None, timeout_graceful_shutdown=5)
+    server = DrainingServer(config, begin_drain=begin_drain, pending=lambda: app.state.sim.runner.pending,
+                            grace_s=resolved.drain_grace_s, notice_s=resolved.drain_notice_s)
+    server.run()
+    return 0 if server.started else 3

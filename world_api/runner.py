@@ -5,18 +5,26 @@ made current in another while the first holds it, so a generic thread pool (whic
 to any free thread) is not enough: every world is built, stepped and rendered on the same single
 thread. Requests queue behind each other there, which is also the right amount of parallelism for a
 worker that owns one or two cores (run more worker processes to scale).
+
+The queue is bounded (``max_queued`` calls waiting or running; one more is refused with 503
+``overloaded`` and ``Retry-After``), and a call whose deadline passed while it waited is dropped
+before the world runs it (504 ``deadline_exceeded``): a simulation costs seconds, so work nobody
+waits for any more is the most expensive kind.
 """
 
 from __future__ import annotations
 
 import asyncio
 import functools
+import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable, TypeVar
 
 import numpy as np
 
+from firp.core.deadlines import deadline_exceeded
+from firp.core.http_errors import ApiError
 from world_api.backend import EpisodeStart, Outcome, WorldBackend
 from world_api.images import encode_png_b64
 
@@ -32,29 +40,56 @@ class Execution:
 class WorldRunner:
     """Async front of a :class:`WorldBackend` that lives on its own thread."""
 
-    def __init__(self, backend: WorldBackend):
+    def __init__(self, backend: WorldBackend, max_queued: int | None = None, retry_after_s: int = 1):
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="world")
         self.backend = backend
+        self.max_queued = max_queued
+        self.retry_after_s = retry_after_s
+        self.pending = 0  # bounded calls waiting for the world's thread or running on it
 
     async def _call(self, fn: Callable[..., R], *args: object) -> R:
         return await asyncio.get_running_loop().run_in_executor(self._pool, functools.partial(fn, *args))
 
+    async def _bounded(self, fn: Callable[[], R], deadline: float | None) -> R:
+        """``fn`` on the world's thread, if the queue has room and its deadline has not passed when its turn comes."""
+        if self.max_queued is not None and self.pending >= self.max_queued:
+            raise ApiError(503, None, "overloaded", f"{self.pending} calls are waiting for this world, the most it "
+                           "queues (setting max_queued); retry later, or on another worker",
+                           headers={"Retry-After": str(self.retry_after_s)})
+        budget = None if deadline is None else deadline - time.monotonic()
+
+        def guarded() -> R | None:
+            if deadline is not None and time.monotonic() >= deadline:
+                return None  # dropped: never run
+            return fn()
+
+        self.pending += 1
+        try:
+            result = await self._call(guarded)
+        finally:
+            self.pending -= 1
+        if result is None:
+            raise deadline_exceeded("queued", budget)
+        return result
+
     async def warm_up(self) -> None:
         await self._call(self.backend.warm_up)
 
-    async def begin(self, task: str, seed: int, pose_error_mm: float, pose_error_deg: float) -> tuple[EpisodeStart, str]:
+    async def begin(self, task: str, seed: int, pose_error_mm: float, pose_error_deg: float,
+                    deadline: float | None = None) -> tuple[EpisodeStart, str]:
         """The episode's initial state and its image as base64 PNG."""
         def run() -> tuple[EpisodeStart, str]:
             start = self.backend.begin(task, seed, pose_error_mm, pose_error_deg)
             return start, encode_png_b64(start.image)
-        return await self._call(run)
+        return await self._bounded(run, deadline)
 
-    async def execute(self, start: EpisodeStart, plan: np.ndarray, record_frames: bool) -> Execution:
+    async def execute(self, start: EpisodeStart, plan: np.ndarray, record_frames: bool,
+                      deadline: float | None = None) -> Execution:
         def run() -> Execution:
             outcome = self.backend.execute(start, plan, record_frames)
             frames = [encode_png_b64(f) for f in outcome.frames] if outcome.frames is not None else None
             return Execution(outcome, frames)
-        return await self._call(run)
+        return await self._bounded(run, deadline)
 
     async def close(self) -> None:
         """Free the world (its GL contexts) on the thread that owns it, then stop the thread."""

@@ -27,5 +27,13 @@ class WorldSettings(BaseSettings):
     max_episodes: int = Field(1024, ge=1, description="episodes kept at once; the oldest is evicted beyond")
     episode_ttl_seconds: float = Field(3600.0, gt=0.0, allow_inf_nan=False,
                                        description="an episode expires this long after it was created")
+    max_queued: int = Field(16, ge=1, le=100_000, description="episode starts and executions waiting or running "
+                            "at once; one more gets 503 with Retry-After")
+    request_timeout_s: float = Field(0.0, ge=0.0, le=3600.0, description="default time budget of a call (0: none); "
+                                     "X-Request-Timeout may set one; a call still queued when it ends gets 504")
+    drain_grace_s: float = Field(20.0, ge=0.0, le=3600.0, description="on SIGTERM: readiness 503 at once, queued "
+                                 "calls answered for at most this long, then exit 0")
+    drain_notice_s: float = Field(1.0, ge=0.0, le=600.0, description="on SIGTERM, readiness answers 503 at least "
+                                  "this long before the socket closes")
     log_format: Literal["text", "json"] = Field("text", description="json: one JSON object per log line, one "
                                                 "line per request (time, request id, route, status, latency)")
