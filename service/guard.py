@@ -6,7 +6,8 @@ with a wrong content type must not be parsed at all (FastAPI would otherwise tre
 and answer with a confusing 422). JSON between systems is UTF-8 (RFC 8259); FastAPI would answer
 other bytes with a bare 400. All answers use the service's one error shape.
 
-A route whose body is optional (the V2 repository's) takes an empty body without a Content-Type.
+The V2 repository's routes (optional bodies) take a body without a Content-Type as JSON, as
+Triton's client sends it.
 
 Only requests that a route will take (path *and* method match) are guarded: a PUT to a POST-only
 path, or any request to an unknown path, goes on to the router for its 405/404, unread.
@@ -52,7 +53,7 @@ class RequestGuard:
         self.max_body_bytes = max_body_bytes
         self.routes = tuple(routes)
         self.binary_routes = tuple(binary_routes)
-        self.optional_body_routes = tuple(optional_body_routes)  # an empty body needs no Content-Type
+        self.optional_body_routes = tuple(optional_body_routes)  # a body without Content-Type is JSON
 
     def _routed(self, scope: Scope) -> bool:
         return any(route.matches(scope)[0] == Match.FULL for route in self.routes)
@@ -65,8 +66,8 @@ class RequestGuard:
         content_type = headers.get("content-type")
         v2 = any(route.matches(scope)[0] == Match.FULL for route in self.binary_routes)
         binary = v2 and BINARY_HEADER in headers
-        empty = headers.get("content-length") in (None, "0") and "transfer-encoding" not in headers
-        optional = empty and content_type is None and any(
+        # V2 clients (Triton's) send the repository's small JSON bodies, or none, without a Content-Type
+        optional = content_type is None and any(
             route.matches(scope)[0] == Match.FULL for route in self.optional_body_routes)
         if not (binary or optional or is_json_media_type(content_type) or (v2 and content_type is None)):
             got = repr(content_type) if content_type else "no Content-Type"

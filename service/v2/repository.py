@@ -17,8 +17,10 @@ from pathlib import Path
 from typing import Any
 
 from fastapi import APIRouter, Request
-from pydantic import BaseModel, ConfigDict, Field, StrictBool
+from fastapi.exceptions import RequestValidationError
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, ValidationError
 
+from service.routing import parse_json
 from service.errors import ServiceError, error_responses
 from service.repository import ModelRepository
 
@@ -49,13 +51,36 @@ def _repository(request: Request) -> ModelRepository:
     return request.app.state.repository
 
 
+async def _body(request: Request, model: type[BaseModel]) -> Any:
+    """The optional JSON body, parsed here: Triton's client sends it without a Content-Type, and FastAPI
+    would read such a body as bytes."""
+    raw = await request.body()
+    if not raw.strip():
+        return None
+    try:
+        data = parse_json(raw)
+    except ValueError as exc:
+        raise ServiceError(422, "body", "json_invalid", f"the body is not JSON: {exc}") from exc
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise RequestValidationError(exc.errors()) from exc
+
+
+def _optional_body(model: type[BaseModel]) -> dict[str, Any]:
+    """The OpenAPI description of a body the route parses itself (:func:`_body`)."""
+    return {"requestBody": {"required": False, "content": {"application/json": {"schema": model.model_json_schema()}}}}
+
+
 def repository_router(guarded: list[Any]) -> APIRouter:
     router = APIRouter(prefix="/v2/repository", tags=["open inference protocol: model repository"],
                        dependencies=guarded)
     errors = error_responses(401, 404, 422, v2=True)
 
-    @router.post("/index", response_model=list[RepositoryModel], responses=errors, summary="Models in the repository")
-    async def index(request: Request, body: RepositoryIndexRequest | None = None) -> list[RepositoryModel]:
+    @router.post("/index", response_model=list[RepositoryModel], responses=errors, summary="Models in the repository",
+                 openapi_extra=_optional_body(RepositoryIndexRequest))
+    async def index(request: Request) -> list[RepositoryModel]:
+        body = await _body(request, RepositoryIndexRequest)
         repo = _repository(request)
         model = repo.model
         if model is not None:
@@ -66,8 +91,10 @@ def repository_router(guarded: list[Any]) -> APIRouter:
         return [RepositoryModel(name=name, version=version, state="UNAVAILABLE", reason="unloaded")]
 
     @router.post("/models/{name}/load", response_model=RepositoryModel, responses=errors,
-                 summary="Load (or swap in) a bundle; the model in use serves until the new one is warm")
-    async def load(name: str, request: Request, body: RepositoryLoadRequest | None = None) -> RepositoryModel:
+                 summary="Load (or swap in) a bundle; the model in use serves until the new one is warm",
+                 openapi_extra=_optional_body(RepositoryLoadRequest))
+    async def load(name: str, request: Request) -> RepositoryModel:
+        body = await _body(request, RepositoryLoadRequest)
         parameters = (body.parameters if body is not None else None) or {}
         unknown = sorted(set(parameters) - {"bundle"})
         if unknown:

@@ -132,3 +132,11 @@ def test_the_repository_is_behind_the_api_key(tiny_bundle):
         assert c.post("/v2/repository/index").status_code == 401
         assert c.post("/v2/repository/models/tiny/unload").status_code == 401
         assert c.post("/v2/repository/index", headers={"X-API-Key": "s3cret"}).status_code == 200
+
+
+def test_repository_bodies_are_checked(client):
+    for body, field, rule in (({"ready": 1}, "ready", "bool_type"), ({"other": True}, "other", "extra_forbidden")):
+        r = client.post("/v2/repository/index", json=body)
+        assert r.status_code == 422 and (r.json()["field"], r.json()["rule"]) == (field, rule), r.json()
+    r = client.post("/v2/repository/index", content=b"{nope", headers={"content-type": "application/json"})
+    assert r.status_code == 422 and (r.json()["field"], r.json()["rule"]) == ("body", "json_invalid")

@@ -7,12 +7,14 @@ import json
 import socket
 import struct
 import threading
+import time
 from collections.abc import Iterator
 
 import numpy as np
 import pytest
 
 from service.app import create_app
+from service.settings import ServiceSettings
 from tests.firp.bundle_helpers import random_image, valid_plans
 
 from .helpers import encode_image
@@ -259,3 +261,48 @@ def test_tritonclient_scores_equal_v1(loopback, binary):
     assert result.get_response()["id"] == "t-1"
     np.testing.assert_array_equal(everything.as_numpy("score"), result.as_numpy("score"))
     assert everything.as_numpy("failure_step").dtype == np.int64
+
+
+def test_tritonclient_drives_the_repository_and_reads_v2_errors(tiny_bundle):
+    """Triton's client: versioned readiness, the repository index, unload / load (the hot swap), a
+    timeout parameter, and the protocol's error string in its exception."""
+    import tritonclient.http as httpclient
+    from tritonclient.utils import InferenceServerException
+
+    import uvicorn
+
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    server = uvicorn.Server(uvicorn.Config(create_app(ServiceSettings(bundle=tiny_bundle)), log_level="warning",
+                                           lifespan="on"))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 60
+    while not server.started:
+        assert time.monotonic() < deadline, "the service did not start"
+        time.sleep(0.05)
+    triton = httpclient.InferenceServerClient(url=f"127.0.0.1:{sock.getsockname()[1]}")
+    try:
+        version = triton.get_model_metadata("tiny")["versions"][0]
+        assert triton.is_model_ready("tiny", model_version=version)
+        assert not triton.is_model_ready("tiny", model_version="0")
+        assert triton.get_model_repository_index() == [{"name": "tiny", "version": version, "state": "READY",
+                                                        "reason": ""}]
+        triton.unload_model("tiny")
+        assert not triton.is_server_ready()
+        triton.load_model("tiny")  # the configured bundle, read again
+        assert triton.is_model_ready("tiny")
+        with pytest.raises(InferenceServerException) as err:
+            triton.get_model_metadata("other")
+        assert "serves model 'tiny', not 'other'" in str(err.value)
+        image = httpclient.InferInput("image", list(IMG.shape), "UINT8")
+        image.set_data_from_numpy(IMG)
+        plan = httpclient.InferInput("plan", list(PLANS.shape), "FP32")
+        plan.set_data_from_numpy(PLANS.astype(np.float32))
+        result = triton.infer("tiny", [image, plan], timeout=30_000_000)  # microseconds, Triton's own parameter
+        assert result.as_numpy("score").shape == (2,)
+    finally:
+        triton.close()
+        server.should_exit = True
+        thread.join(timeout=30)
+        sock.close()
