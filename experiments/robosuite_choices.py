@@ -26,6 +26,7 @@ import time
 from collections import Counter, defaultdict
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 TABLE_CONTACT = 0.01  # a cube whose centre is within this of its resting height on the table is "on the table"
@@ -45,6 +46,47 @@ def failure_mode(order: list[str], final_blocks: dict, scene: dict, kind: str) -
     return " and ".join(f"{'middle' if name == order[1] else 'top'} cube on the table" for name in on_table)
 
 
+NUT_ON_PEG = 0.02  # the nut's centre within this of the peg's axis: around the peg
+NUT_DOWN = 0.03  # ... and within this of the table: down on it
+
+
+def nut_failure_mode(final_blocks: dict, scene: dict, kind: str) -> str:
+    """Where the nut ended, from the end state: stuck up on the peg, beside it on the table, or elsewhere."""
+    if kind == "unstable":
+        return "unstable"
+    (nut,) = final_blocks.values()
+    x, y, z = nut["position"]
+    off_axis = float(np.hypot(x - scene["peg"][0], y - scene["peg"][1]))
+    up = z - scene["table_height"] - scene["nut_half_height"]
+    if z < scene["table_height"] - NUT_DOWN:
+        return "off the table"
+    if off_axis < NUT_ON_PEG:
+        return "on the peg, not down (jammed)" if up > NUT_DOWN else "around the peg (the check failed)"
+    if up < NUT_DOWN:
+        return "on the table beside the peg"
+    return "in the air (still held, or resting on something)"
+
+
+def _factors(task: str, attrs: dict) -> dict[str, str]:
+    parts = attrs["choice"].split(":")
+    if task == "nut_assembly":
+        from planner_client.robosuite_tamp import NUT_GRIP_NAMES, NUT_GRIPS
+
+        grip = dict(zip(NUT_GRIP_NAMES, NUT_GRIPS))[parts[4]]
+        return {"grasp axis": "across the handle" if parts[1] == "0" else "along the handle",
+                "grip point (m outwards of the handle's centre)": f"{grip:+.3f}",
+                "release": {"l:q0": "lowered, handle towards the robot", "d:q0": "dropped, handle towards the robot",
+                            "d:q1": "dropped, handle to the side"}[f"{parts[2]}:{parts[3]}"]}
+    return {"order": "-".join(attrs["block_order"]), "grasp axes": "".join(map(str, attrs["grasp_axes"])),
+            "grasp heights (middle, top)": parts[2]}
+
+
+def _failure_mode(task: str, order: list[str], final_blocks: dict, scene: dict, kind: str) -> str:
+    if task == "nut_assembly":
+        return nut_failure_mode(final_blocks, scene, kind)
+    return failure_mode(order, final_blocks, scene, kind)
+
+
 def analyse_dataset(path: Path) -> dict:
     from firp.core.episodes import EpisodeDataset
 
@@ -54,11 +96,10 @@ def analyse_dataset(path: Path) -> dict:
     default = Counter()
     with EpisodeDataset(path) as ds:
         n = len(ds)
+        task = ds.attrs.get("task", "stack_three")
         for i in range(n):
             attrs, success = ds.demo_attrs(i), ds.success(i)
-            keys = {"order": "-".join(attrs["block_order"]),
-                    "grasp axes": "".join(map(str, attrs["grasp_axes"])),
-                    "grasp heights (middle, top)": attrs["choice"].split(":")[2]}
+            keys = _factors(task, attrs)
             for factor, value in keys.items():
                 totals[factor][value] += 1
                 factors[factor][value] += success
@@ -66,10 +107,10 @@ def analyse_dataset(path: Path) -> dict:
                 default["n"] += 1
                 default["success"] += success
             if not success:
-                modes[failure_mode(attrs["block_order"], attrs["final_blocks"], attrs["scene"], attrs["kind"])] += 1
+                modes[_failure_mode(task, attrs["block_order"], attrs["final_blocks"], attrs["scene"], attrs["kind"])] += 1
         balance = ds.class_balance()
     return {
-        "episodes": n, "class_balance": balance,
+        "task": task, "episodes": n, "class_balance": balance,
         "success_by_factor": {factor: {value: {"episodes": totals[factor][value],
                                                "success_rate": round(factors[factor][value] / totals[factor][value], 3)}
                                        for value in sorted(totals[factor])} for factor in totals},
@@ -97,8 +138,8 @@ def _survey_seed(args: tuple[str, int, int]) -> dict:
     for choice in planner.choices(task, start.observation)[:max_tries]:
         outcome = world.execute(start, planner.plan(task, start.observation, choice).actions, False)
         tried.append({"choice": choice.label(), "success": outcome.success, "kind": outcome.kind,
-                      "mode": None if outcome.success else failure_mode(list(choice.order), outcome.final_blocks,
-                                                                        start.observation["scene"], outcome.kind)})
+                      "mode": None if outcome.success else _failure_mode(task, list(choice.order), outcome.final_blocks,
+                                                                         start.observation["scene"], outcome.kind)})
         if outcome.success:
             break
     return {"seed": seed, "tried": tried}
@@ -126,7 +167,8 @@ def survey(task: str, seeds: int, first_seed: int, workers: int, max_tries: int,
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--task", default="stack_three", choices=["stack_three"])
+    parser.add_argument("--task", default="stack_three", choices=["stack_three", "nut_assembly"],
+                        help="the survey's task (a dataset says its own)")
     parser.add_argument("--data", type=Path, default=None, help="a robosuite dataset to analyse (no simulation)")
     parser.add_argument("--seeds", type=int, default=0, help="scene seeds to survey in simulation (0: none)")
     parser.add_argument("--seed", type=int, default=200_000, help="first survey seed (datasets use 0..)")

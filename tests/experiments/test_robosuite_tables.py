@@ -52,3 +52,18 @@ def test_failure_modes_name_the_cube_that_did_not_reach_the_tower():
     assert failure_mode(order, _blocks(cubeA=0.02, cubeB=0.065, cubeC=0.11), SCENE, "not_done").startswith(
         "tower stands incomplete")
     assert failure_mode(order, {}, SCENE, "unstable") == "unstable"
+
+
+def test_nut_failure_modes_say_where_the_nut_ended():
+    from experiments.robosuite_choices import nut_failure_mode
+
+    scene = {"peg": [0.23, 0.1, 0.85], "table_height": 0.82, "nut_half_height": 0.01}
+
+    def at(x, y, z):
+        return {"SquareNut": {"position": [x, y, z], "yaw": 0.0}}
+
+    assert nut_failure_mode(at(0.235, 0.1, 0.90), scene, "not_done") == "on the peg, not down (jammed)"
+    assert nut_failure_mode(at(0.30, 0.05, 0.831), scene, "not_done") == "on the table beside the peg"
+    assert nut_failure_mode(at(0.0, 0.0, 1.10), scene, "not_done") == "in the air (still held, or resting on something)"
+    assert nut_failure_mode(at(0.9, 0.9, 0.2), scene, "not_done") == "off the table"
+    assert nut_failure_mode(at(0.0, 0.0, 0.0), scene, "unstable") == "unstable"
