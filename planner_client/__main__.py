@@ -70,6 +70,9 @@ def add_run_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     run.add_argument("--out", type=Path, default=None,
                      help="JSONL of trial records (default: a new runs/<task>-<time>.jsonl)")
     run.add_argument("--resume", action="store_true", help="continue an interrupted run in --out (same settings)")
+    run.add_argument("--record", type=Path, default=None, metavar="DIR",
+                     help="record every executed plan (frames, plan, label, scene id, the score and the bundle "
+                          "version) as episodes training reads: DIR/executions.h5 (resumable)")
     run.add_argument("--sim", default=settings.sim_url, metavar="URL",
                      help="running sim worker (env FIRP_PLANNER_SIM_URL); default: launch one for the run")
     run.add_argument("--service", default=settings.service_url, metavar="URL",
@@ -223,7 +226,8 @@ def run_command(args: argparse.Namespace, parser: argparse.ArgumentParser, argv:
     if out.exists() and not args.resume:
         parser.error(f"--out {out} exists; pass --resume to continue it or choose another file")
     config = RunConfig(task=args.task, trials=args.trials, seed=args.seed, max_iterations=args.max_iterations,
-                       oracle=not args.no_oracle, out=out, resume=args.resume, threshold=args.threshold)
+                       oracle=not args.no_oracle, out=out, resume=args.resume, threshold=args.threshold,
+                       record=args.record, world=args.world)
     plan = ServicePlan(task=args.task, out_dir=out.parent, sim_url=args.sim, service_url=args.service,
                        bundle=args.bundle, score=not args.no_score, api_key=args.api_key,
                        ready_timeout=args.ready_timeout, world=args.world)

@@ -32,10 +32,12 @@ class Outcome:
     reason: str
     sim_seconds: float
     kind: str
+    frames: np.ndarray | None = field(default=None, repr=False)  # (T, H, W, 3), only when asked for
 
 
 class EmbeddedSim:
-    """Runs the MuJoCo worlds in this process (no frames recorded: the loop only needs labels)."""
+    """Runs the MuJoCo worlds in this process (frames only when asked: the loop needs labels, a
+    recording run (``--record``) the frames too)."""
 
     def __init__(self, pose_error: PoseErrorConfig = PoseErrorConfig(), image_size: int = 84):
         self.worlds = TaskWorlds(image_size)
@@ -45,9 +47,9 @@ class EmbeddedSim:
         start = self.worlds.begin(task, seed, self.pose_error)
         return Episode(task, seed, start.observation, start.true_blocks, encode_png_b64(start.image))
 
-    def execute(self, episode: Episode, plan: np.ndarray) -> Outcome:
-        r = self.worlds.execute(episode.task, episode.true_blocks, plan, record_frames=False)
-        return Outcome(r.success, r.reason, r.sim_seconds, r.kind)
+    def execute(self, episode: Episode, plan: np.ndarray, record_frames: bool = False) -> Outcome:
+        r = self.worlds.execute(episode.task, episode.true_blocks, plan, record_frames=record_frames)
+        return Outcome(r.success, r.reason, r.sim_seconds, r.kind, r.frames if record_frames else None)
 
     def close(self) -> None:
         self.worlds.close()

@@ -32,6 +32,7 @@ import numpy as np
 
 from planner_client.backend import SimBackend, SimOutcome
 from planner_client.ik import IKFailure
+from planner_client.recording import ExecutionRecorder, frames_of
 from planner_client.transport import request_id
 
 
@@ -45,6 +46,8 @@ class RunConfig:
     out: Path = Path("runs/run.jsonl")
     resume: bool = False
     threshold: float | None = None  # None: the service's own threshold (each answer carries it)
+    record: Path | None = None  # record every executed plan, with frames, as episodes here (planner_client.recording)
+    world: str = "mujoco"  # for the recorded dataset's attrs
 
 
 class Planner(Protocol):
@@ -157,6 +160,12 @@ class TrialWork:
     unplannable: dict[Hashable, str] = field(default_factory=dict)  # candidate -> why it has no plan
     timing: dict[str, float] = field(default_factory=lambda: {"start_s": 0.0, "plan_s": 0.0, "score_s": 0.0,
                                                               "execute_s": 0.0})
+    # recording (firp run --record): the trial, the loop's order of candidates, the scores they got
+    recorder: ExecutionRecorder | None = None
+    trial: int = 0
+    candidates: list[Hashable] = field(default_factory=list)
+    scores: dict[Hashable, float] = field(default_factory=dict)
+    model: dict | None = None
 
     def plan(self, candidate: Hashable) -> np.ndarray | None:
         """The candidate's plan, or None when the planner cannot plan it (the reason is kept)."""
@@ -179,7 +188,14 @@ class TrialWork:
             return NoPlan(self.unplannable[candidate])
         if candidate not in self.outcomes:
             started = time.perf_counter()
-            self.outcomes[candidate] = self.sim.execute(self.episode, plan)
+            if self.recorder is None:
+                self.outcomes[candidate] = self.sim.execute(self.episode, plan)
+            else:
+                self.outcomes[candidate] = outcome = self.sim.execute(self.episode, plan, record_frames=True)
+                self.recorder.record(trial=self.trial, place=self.candidates.index(candidate), episode=self.episode,
+                                     candidate=str(self.planner.describe(candidate)), plan=plan, outcome=outcome,
+                                     frames=frames_of(outcome), score=self.scores.get(candidate),
+                                     model=self.model if candidate in self.scores else None)
             self.timing["execute_s"] += time.perf_counter() - started
         return self.outcomes[candidate]
 
@@ -217,6 +233,7 @@ def replan_until_accepted(work: TrialWork, scorer: Scorer, orders: list[Hashable
         work.timing["score_s"] += time.perf_counter() - started
         used_threshold = float(answer["threshold"]) if threshold is None else threshold
         scores.append(float(answer["score"]))
+        work.scores[candidate] = scores[-1]
         if accepts(scores[-1], used_threshold):
             accepted = True
             break
@@ -237,21 +254,22 @@ def oracle_line(work: TrialWork, orders: list[Hashable]) -> dict:
 
 
 def run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: Planner, scorer: Scorer | None,
-              identity: dict) -> dict:
+              identity: dict, recorder: ExecutionRecorder | None = None) -> dict:
     """One trial's record (see the module docstring for what is run). Every call of the trial to the sim
     worker and the scoring service carries the trial's ``X-Request-ID``, which the record keeps."""
     with request_id(f"trial-{trial}-{uuid.uuid4().hex[:12]}") as rid:
-        record = _run_trial(trial, config, sim, planner, scorer, identity)
+        record = _run_trial(trial, config, sim, planner, scorer, identity, recorder)
     return {**record, "request_id": rid}
 
 
 def _run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: Planner, scorer: Scorer | None,
-               identity: dict) -> dict:
+               identity: dict, recorder: ExecutionRecorder | None) -> dict:
     started = time.perf_counter()
     seed = config.seed + trial
     episode = sim.start(config.task, seed)
     orders = planner.candidates(config.task, episode.observation)[: config.max_iterations]
-    work = TrialWork(sim, planner, episode)
+    work = TrialWork(sim, planner, episode, recorder=recorder, trial=trial, candidates=list(orders),
+                     model=identity.get("model"))
     work.timing["start_s"] = time.perf_counter() - started
     record: dict = {"trial": trial, "seed": seed, "task": config.task, "run": identity}
     if scorer is not None:
@@ -291,11 +309,19 @@ def run_trials(config: RunConfig, sim: SimBackend[Any], planner: Planner,
     done = {r["trial"] for r in records}
     # rewrite without a torn tail so appends start on a clean line
     config.out.write_text("".join(json.dumps(r) + "\n" for r in records))
-    with config.out.open("a") as sink:
-        for trial in range(config.trials):
-            if trial in done:
-                continue
-            record = run_trial(trial, config, sim, planner, scorer, identity)
-            sink.write(json.dumps(record) + "\n")
-            sink.flush()
-            yield record
+    recorder = None if config.record is None else ExecutionRecorder(config.record, config.task,
+                                                                    planner.horizon(config.task), config.world)
+    try:
+        with config.out.open("a") as sink:
+            for trial in range(config.trials):
+                if trial in done:
+                    continue
+                record = run_trial(trial, config, sim, planner, scorer, identity, recorder)
+                if recorder is not None:
+                    record["recorded_executions"] = record["executions"]
+                sink.write(json.dumps(record) + "\n")
+                sink.flush()
+                yield record
+    finally:
+        if recorder is not None:
+            recorder.consolidate()  # the parts of the trials run so far, merged: readable by training

@@ -442,3 +442,51 @@ def test_a_trial_with_no_plannable_candidate_says_so(sim_and_planner, tmp_path):
     config = RunConfig(trials=1, seed=5, max_iterations=2, out=tmp_path / "run.jsonl")
     with pytest.raises(IKFailure, match="could plan none of its 2 candidates"):
         list(run_trials(config, sim, Unreachable({0, 1}), ScriptedScorer([0.9], threshold=0.5)))
+
+
+# -- every execution is data (--record) ------------------------------------------------------------
+def test_recorded_executions_are_a_dataset_with_frames_scores_and_scene_ids(tmp_path, sim_and_planner):
+    """A scripted scorer rejects the first two plans: the loop executes the third (FIRP), the first (TAMP
+    alone) and the oracle's; each execution becomes an episode of the project's layout, whose frame 0
+    is the scene's initial image and whose score and bundle version are the ones that chose it."""
+    from firp.core.episodes import EpisodeDataset
+    from world_api.images import decode_png_b64
+
+    sim, planner = sim_and_planner
+    scorer = ScriptedScorer([0.1, 0.2, 0.9] * 4, threshold=0.5)
+    config = RunConfig(trials=2, out=tmp_path / "run.jsonl", max_iterations=3, record=tmp_path / "rec")
+    records = list(run_trials(config, sim, planner, scorer))
+    with EpisodeDataset(tmp_path / "rec" / "executions.h5") as ds:
+        assert len(ds) == sum(r["executions"] for r in records) and ds.attrs["T"] == T
+        # demo names are trial * 100 + the candidate's place in the loop's order; training reads them by name
+        rows = [ds.demo_attrs(n) | {"success": ds.success(n), "frames": ds.frames(n), "actions": ds.actions(n)}
+                for n in ds.demo_names]
+    for trial, record in enumerate(records):
+        mine = [row for row in rows if row["trial"] == trial]
+        assert {row["scene_id"] for row in mine} == {f"stacking/{record['seed']}"}
+        firp = next(row for row in mine if row["candidate"] == str(record["firp_order"]))
+        assert firp["score"] == 0.9 and firp["scored_by"] == {"name": "scripted", "version": "1"}
+        assert firp["success"] == record["firp_success"] and firp["candidate_index"] == 2
+        tamp = next(row for row in mine if row["candidate_index"] == 0)
+        assert tamp["success"] == record["tamp_success"] and tamp["score"] == 0.1
+        episode = sim.start("stacking", record["seed"])
+        np.testing.assert_array_equal(firp["frames"][0], decode_png_b64(episode.image_b64))
+        assert firp["frames"].shape == (T, 84, 84, 3) and firp["actions"].shape == (T, 16)
+    # resuming a finished run records nothing twice
+    config2 = RunConfig(trials=2, out=tmp_path / "run.jsonl", max_iterations=3, record=tmp_path / "rec", resume=True)
+    assert list(run_trials(config2, sim, planner, ScriptedScorer([0.9] * 12, 0.5))) == []
+    with EpisodeDataset(tmp_path / "rec" / "executions.h5") as ds:
+        assert len(ds) == len(rows)
+
+
+def test_frames_of_reads_the_sim_workers_base64_frames_and_refuses_none():
+    from types import SimpleNamespace
+
+    from planner_client.recording import frames_of
+    from world_api.images import encode_png_b64
+
+    frames = np.random.default_rng(0).integers(0, 256, (3, 8, 8, 3), dtype=np.uint8)
+    np.testing.assert_array_equal(frames_of(SimpleNamespace(frames_b64=[encode_png_b64(f) for f in frames])), frames)
+    np.testing.assert_array_equal(frames_of(SimpleNamespace(frames=frames)), frames)
+    with pytest.raises(ValueError, match="no frames"):
+        frames_of(SimpleNamespace(frames_b64=None))
