@@ -20,11 +20,12 @@ from .conftest import read_jsonl
 
 TRIALS = 3
 TIMING = ("start_s", "plan_s", "score_s", "execute_s", "seconds")
+IDENTIFIERS = ("request_id",)  # new per run: it finds a trial's calls in the services' logs
 REASONS = ("tamp", "firp")  # <line>_success + <line>_reason: compared as kinds
 
 
 def _comparable(record: dict) -> dict:
-    out = {k: v for k, v in record.items() if k not in TIMING and k != "scores"}
+    out = {k: v for k, v in record.items() if k not in TIMING + IDENTIFIERS and k != "scores"}
     for line in REASONS:
         out[f"{line}_reason"] = reason_kind(record[f"{line}_success"], record[f"{line}_reason"])
     return out
