@@ -49,6 +49,7 @@ class _Pending:
     job: ScoreJob
     deadline: float | None = None  # time.monotonic() seconds
     budget_s: float | None = None  # for the 504's message
+    queued_at: float = field(default_factory=time.perf_counter)
     done: anyio.Event = field(default_factory=anyio.Event)
     result: ModelScores | BaseException | None = None
     taken: bool = False  # in a pass (computed, or being computed)
@@ -199,12 +200,15 @@ class MicroBatcher:
                 jobs = [p.job for p in batch]
                 model = self.model  # read once: a hot swap never splits a pass between two bundles
                 started = time.perf_counter()
+                for pending in batch:
+                    model.statistics.waited(started - pending.queued_at)
                 try:
                     results: list[ModelScores | Exception] = await model.run(lambda: model.score_jobs(jobs))
                 except Exception as exc:  # noqa: BLE001 - the pass failed: its requests get the error
                     log.exception("a scoring pass of %d requests failed", len(batch))
                     results = [exc] * len(batch)
                 self._observe_pass(time.perf_counter() - started, sum(p.n_plans for p in batch))
+                model.statistics.computed(time.perf_counter() - started, len(batch))
                 if self.metrics is not None:
                     self.metrics.micro_batch.observe(len(batch))
                 for pending, result in zip(batch, results):

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import time
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -92,20 +93,29 @@ async def score_off_loop(request: Request, model: ServiceModel, endpoint: str, i
     job = ScoreJob(image_key, load_image, plans, fields)
     batcher = getattr(request.app.state, "batcher", None)
     deadline = deadline_of(request)
-    if batcher is not None:
-        scores = await batcher.submit(job, deadline)
-    else:
-        def work() -> ModelScores:
-            left = remaining(deadline)
-            if left is not None and left <= 0:  # waited for the inference token past its budget: drop it
-                metrics_of(request).deadline_exceeded.labels("queued").inc()
-                raise deadline_exceeded("queued", None)
-            result = model.score_jobs([job])[0]
-            if isinstance(result, BaseException):
-                raise result
-            return result
+    started = time.perf_counter()
+    try:
+        if batcher is not None:
+            scores = await batcher.submit(job, deadline)
+        else:
+            def work() -> ModelScores:
+                left = remaining(deadline)
+                if left is not None and left <= 0:  # waited for the inference token past its budget: drop it
+                    metrics_of(request).deadline_exceeded.labels("queued").inc()
+                    raise deadline_exceeded("queued", None)
+                model.statistics.waited(time.perf_counter() - started)
+                computing = time.perf_counter()
+                result = model.score_jobs([job])[0]
+                model.statistics.computed(time.perf_counter() - computing, 1)
+                if isinstance(result, BaseException):
+                    raise result
+                return result
 
-        scores = await model.run(work)
+            scores = await model.run(work)
+    except BaseException:
+        model.statistics.failed(time.perf_counter() - started)
+        raise
+    model.statistics.answered(time.perf_counter() - started, len(plans))
     metrics_of(request).observe_inference(endpoint, scores.inference_s, len(plans), scores.cache_hit)
     request.scope.setdefault(SCOPE_LOG, {}).update(model_version=scores.version, plans=len(plans))
     return scores

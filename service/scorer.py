@@ -51,6 +51,7 @@ from firp.core.contract import (
     validate_plan,
 )
 from firp.serving import EnsembleScorer
+from service.statistics import InferenceStatistics
 
 __all__ = ["FeatureCache", "ModelScores", "ScoreJob", "ServiceModel", "failure_steps", "neutral_plan",
            "set_torch_threads"]
@@ -149,6 +150,7 @@ class ServiceModel:
         self.version = str(bundle.manifest.get("version") or extra.get("version") or digest[:12])
         self.digest = digest
         self.warmup_ms: float | None = None
+        self.statistics = InferenceStatistics()  # the V2 statistics extension's counters (service.statistics)
 
     @classmethod
     def load(cls, path: str | Path, feature_cache_size: int = 64) -> ServiceModel:

@@ -107,7 +107,14 @@ def v2_router(guarded: list[Any]) -> APIRouter:
     @router.get("", response_model=V2ServerMetadata, dependencies=guarded, responses=error_responses(401, v2=True),
                 summary="V2 server metadata")
     async def server_metadata() -> V2ServerMetadata:
-        return V2ServerMetadata(name=SERVER_NAME, version=SERVER_VERSION, extensions=[BINARY_EXTENSION])
+        return V2ServerMetadata(name=SERVER_NAME, version=SERVER_VERSION,
+                                extensions=[BINARY_EXTENSION, "model_repository", "statistics", "schedule_policy"])
+
+    @router.get("/models/stats", dependencies=guarded, responses=_GET_ERRORS,
+                summary="V2 statistics extension: every model's inference statistics")  # before /models/{name}
+    async def all_statistics(request: Request) -> dict:
+        model = ready_model(request)
+        return {"model_stats": [model.statistics.as_dict(model.name, model.version)]}
 
     @router.get("/models/{name}", response_model=V2ModelMetadata, dependencies=guarded, responses=_GET_ERRORS,
                 summary="V2 model metadata")
@@ -128,6 +135,18 @@ def v2_router(guarded: list[Any]) -> APIRouter:
                 responses=_GET_ERRORS, summary="V2 model ready (one version)")
     async def model_version_ready(name: str, version: str, request: Request) -> V2ModelReady:
         return V2ModelReady(name=_named_model(request, name, version).name, ready=True)
+
+    @router.get("/models/{name}/stats", dependencies=guarded, responses=_GET_ERRORS,
+                summary="V2 statistics extension: the model's inference statistics")
+    async def statistics(name: str, request: Request) -> dict:
+        model = _named_model(request, name)
+        return {"model_stats": [model.statistics.as_dict(model.name, model.version)]}
+
+    @router.get("/models/{name}/versions/{version}/stats", dependencies=guarded, responses=_GET_ERRORS,
+                summary="V2 statistics extension: one version's inference statistics")
+    async def version_statistics(name: str, version: str, request: Request) -> dict:
+        model = _named_model(request, name, version)
+        return {"model_stats": [model.statistics.as_dict(model.name, model.version)]}
 
     async def infer(name: str, version: str | None, body: V2InferRequest, request: Request) -> Response:
         start = time.perf_counter()

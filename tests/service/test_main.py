@@ -80,7 +80,10 @@ def test_sigterm_drains_admitted_work_refuses_new_work_and_exits_0(tiny_bundle):
     503 ``not_ready`` with Retry-After, never a reset connection; the process exits 0."""
     proc = subprocess.Popen([sys.executable, "-m", "service", "--host", "127.0.0.1", "--port", "0",
                              "--no-access-log"], env=_env(FIRP_SERVICE_BUNDLE=str(tiny_bundle),
-                                                          FIRP_SERVICE_DRAIN_GRACE_S="10"),
+                                                          FIRP_SERVICE_DRAIN_GRACE_S="10",
+                                                          # no shedding: this test is about the drain, and a
+                                                          # loaded CI machine makes 0.25 s of queue quickly
+                                                          FIRP_SERVICE_MAX_QUEUE_WAIT_S="0"),
                             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     lines: list[str] = []
     reader = None
@@ -128,7 +131,11 @@ def test_sigterm_drains_admitted_work_refuses_new_work_and_exits_0(tiny_bundle):
     assert ready.status_code == 503 and ready.json()["status"] == "draining"
     # work admitted before the signal was answered after it, not dropped
     assert any(status == 200 and answered > signalled for _, answered, status, _ in answers)
-    assert all(status == 200 for sent, _, status, _ in answers if sent < signalled - 0.5)
+    # before the signal every request was served (a request still in the socket's backlog when the
+    # signal came was not admitted yet: it may be refused, below)
+    early = [(round(answered - signalled, 3), status, rule) for _, answered, status, rule in answers
+             if answered < signalled and status != 200]
+    assert not early, early
     refused = [a for a in answers if a[2] != 200]
     assert all((status, rule) == (503, "not_ready") for _, _, status, rule in refused), refused
     # a connection error only once the drain was over and the socket closed

@@ -31,7 +31,8 @@ def test_health_and_server_metadata(client):
     r = client.get("/v2/health/ready")
     assert r.status_code == 200 and r.json() == {"ready": True}
     meta = client.get("/v2").json()
-    assert meta["name"] == "firp-service" and meta["extensions"] == ["binary_tensor_data"]
+    assert meta["name"] == "firp-service"
+    assert meta["extensions"] == ["binary_tensor_data", "model_repository", "statistics", "schedule_policy"]
 
 
 def test_model_metadata_and_readiness(client):

@@ -265,7 +265,7 @@ def test_tritonclient_scores_equal_v1(loopback, binary):
 
 def test_tritonclient_drives_the_repository_and_reads_v2_errors(tiny_bundle):
     """Triton's client: versioned readiness, the repository index, unload / load (the hot swap), a
-    timeout parameter, and the protocol's error string in its exception."""
+    timeout parameter, the statistics extension, and the protocol's error string in its exception."""
     import tritonclient.http as httpclient
     from tritonclient.utils import InferenceServerException
 
@@ -301,6 +301,14 @@ def test_tritonclient_drives_the_repository_and_reads_v2_errors(tiny_bundle):
         plan.set_data_from_numpy(PLANS.astype(np.float32))
         result = triton.infer("tiny", [image, plan], timeout=30_000_000)  # microseconds, Triton's own parameter
         assert result.as_numpy("score").shape == (2,)
+        # the statistics extension, of the bundle loaded again above: one request of two plans since
+        (stats,) = triton.get_inference_statistics("tiny")["model_stats"]
+        assert (stats["name"], stats["version"]) == ("tiny", version)
+        assert stats["inference_count"] == 2 and stats["execution_count"] == 1
+        assert stats["inference_stats"]["success"]["count"] == 1 and stats["inference_stats"]["success"]["ns"] > 0
+        assert stats["inference_stats"]["compute_infer"]["ns"] > 0
+        assert triton.get_inference_statistics()["model_stats"] == [stats]
+        assert triton.get_inference_statistics("tiny", model_version=version)["model_stats"] == [stats]
     finally:
         triton.close()
         server.should_exit = True
