@@ -86,7 +86,8 @@ class Server:
     """``python -m service`` in a subprocess; stopped (SIGTERM, then SIGKILL) on exit."""
 
     def __init__(self, bundle: Path, threads: int, port: int, ready_timeout: float, micro_batch: bool = True,
-                 settings: dict[str, str] | None = None):
+                 settings: dict[str, str] | None = None, log_args: tuple[str, ...] = ("--no-access-log", "--log-level",
+                                                                                        "warning")):
         self.base = f"http://127.0.0.1:{port}"
         env = {k: v for k, v in os.environ.items() if not k.startswith("FIRP_SERVICE_")}
         env.update(OMP_NUM_THREADS=str(threads), PYTHONPATH=str(ROOT), FIRP_SERVICE_MICRO_BATCH=str(micro_batch).lower())
@@ -94,7 +95,7 @@ class Server:
         self.log = open(Path(os.environ.get("TMPDIR", "/tmp")) / f"service_latency_{port}.log", "w+")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "service", "--host", "127.0.0.1", "--port", str(port), "--bundle", str(bundle),
-             "--threads", str(threads), "--no-access-log", "--log-level", "warning"],
+             "--threads", str(threads), *log_args],
             cwd=ROOT, env=env, stdout=self.log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + ready_timeout
         while True:

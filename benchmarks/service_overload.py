@@ -8,6 +8,9 @@ then:
   planner client does. A prober polls ``/readyz`` every 50 ms throughout. Reported: accepted
   requests (200) p50 / p99 latency, refused requests (503 ``overloaded``) p50 / p99 latency and
   whether each carried ``Retry-After``, any other status or transport error, ``/readyz`` p99, plans/s.
+* **server side** -- the service runs with JSON request logs; each request's latency as the service
+  saw it (from its first byte to its answer) is read back from them, by status: what the clients
+  measure beyond that is their own share of the two cores and the network stack.
 * **swap** -- ``--swap-clients`` clients post ``/v1/score`` back to back; after a second the script
   calls ``POST /v2/repository/models/{name}/load`` with a copy of the bundle whose manifest says
   it is another version (the same weights: what is measured is the swap's mechanics -- load,
@@ -24,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import shutil
 import sys
@@ -113,6 +117,20 @@ def overload(base: str, image: str, plans: list, clients: int, seconds: float) -
             "readyz_probes": len(probes), "readyz_p50_ms": pct(probes, 50), "readyz_p99_ms": pct(probes, 99)}
 
 
+def server_side(log, start: int) -> dict[str, Any]:
+    """Latency per route and status as the service logged it (JSON request lines), from offset ``start``."""
+    log.seek(start)
+    by: dict[str, list[float]] = {}
+    for line in log.read().splitlines():
+        try:
+            entry = json.loads(line)
+        except ValueError:
+            continue
+        if entry.get("logger") == "service.access":
+            by.setdefault(f"{entry['route']} {entry['status']}", []).append(float(entry["latency_ms"]))
+    return {key: {"requests": len(v), "p50_ms": pct(v, 50), "p99_ms": pct(v, 99)} for key, v in sorted(by.items())}
+
+
 def swap(base: str, name: str, image: str, plan: list, clients: int, bundle: Path) -> dict[str, Any]:
     answers: list[tuple[float, int, str | None]] = []
     lock = threading.Lock()
@@ -179,10 +197,13 @@ def main() -> None:
         changed.pop("version", None)
         changed["extra"].pop("version", None)
         (other / "manifest.json").write_text(json.dumps(changed, indent=2))
-        server = Server(args.bundle, 1, free_port(), args.ready_timeout, settings=settings)
+        server = Server(args.bundle, 1, free_port(), args.ready_timeout, settings=settings,
+                        log_args=("--log-format", "json", "--log-level", "info"))
         try:
             print(f"serving {manifest['name']} at {server.base}, settings {settings or 'defaults'}", flush=True)
+            mark = os.fstat(server.log.fileno()).st_size  # the service's log so far: start-up
             loaded = overload(server.base, image, plans, args.clients, args.seconds)
+            loaded["server_side"] = server_side(server.log, mark)
             swapped = swap(server.base, manifest["name"], image, plans[0], args.swap_clients, other)
         finally:
             server.stop()
@@ -194,7 +215,7 @@ def main() -> None:
               and swapped["new_version_after_s"] <= 10.0}
     result = {"bundle": str(args.bundle), "T": args.T, "settings": settings, "overload": loaded, "swap": swapped,
               "targets": TARGETS, "checks": checks, "machine": {"python": platform.python_version(),
-                                                                "cpus": __import__("os").cpu_count()},
+                                                                "cpus": os.cpu_count()},
               "command": "python benchmarks/service_overload.py " + " ".join(sys.argv[1:])}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
@@ -207,6 +228,8 @@ def main() -> None:
     print(f"| other errors | {o['other_errors']} | 0 |")
     print(f"| /readyz | p50 {o['readyz_p50_ms']:.1f} ms · p99 {o['readyz_p99_ms']:.1f} ms | p99 ≤ 50 ms |")
     print(f"| plans/s | {o['plans_per_s']:.0f} | |")
+    for key, v in o["server_side"].items():
+        print(f"| service side: {key} | {v['requests']} · p50 {v['p50_ms']:.1f} ms · p99 {v['p99_ms']:.1f} ms | |")
     s = swapped
     print(f"| swap: failed requests | {s['failed_requests']} of {s['requests']} | 0 |")
     print(f"| swap: load call / new version answering | {s['load_s']:.2f} s / "
