@@ -24,7 +24,7 @@ import numpy as np
 
 from firp.core.contract import FPS
 from firp.core.episodes import EpisodeRecord, write_episode_part
-from firp.core.episodes.writer import completed_indices, consolidate
+from firp.core.episodes.writer import consolidate
 
 __all__ = ["ExecutionRecorder", "SLOTS_PER_TRIAL", "frames_of"]
 
@@ -61,9 +61,6 @@ class ExecutionRecorder:
     @property
     def parts_dir(self) -> Path:
         return self.directory / "executions.h5.parts"
-
-    def recorded(self) -> set[int]:
-        return completed_indices(self.out, self.parts_dir) if self.out.exists() or self.parts_dir.exists() else set()
 
     @staticmethod
     def index(trial: int, place: int) -> int:
