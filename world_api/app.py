@@ -122,7 +122,8 @@ def create_world_app(backend: WorldBackend, settings: WorldSettings, clock: Call
                        else "building the worlds and rendering once")
             return error_response(request.scope, 503, None, "not_ready", message)
         return {"status": "ready", "world": backend.name, "tasks": list(backend.tasks),
-                "outcome_kinds": list(backend.outcome_kinds), "image_size": backend.image_size}
+                "outcome_kinds": list(backend.outcome_kinds), "image_size": backend.image_size,
+                "pending": state.runner.pending}
 
     @app.post("/v1/episodes", response_model=EpisodeResponse, status_code=201, responses=ERRORS)
     async def create_episode(body: EpisodeRequest, request: Request) -> dict:  # type: ignore[valid-type]

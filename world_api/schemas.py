@@ -129,3 +129,5 @@ class Ready(BaseModel):
     tasks: list[str]
     outcome_kinds: list[str]
     image_size: int
+    pending: int = Field(description="calls (episode starts, executions) waiting for the world's thread or "
+                                     "running on it: how busy this worker is")

@@ -76,7 +76,7 @@ def test_health_and_readiness(client):
     assert ready.status_code == 200
     assert ready.json() == {"status": "ready", "world": "sim_worker", "tasks": ["stacking", "replacement"],
                             "outcome_kinds": ["success", "not_at_rest", "wrong_height", "tilted", "off_block_below",
-                                              "not_inside", "unstable"], "image_size": 84}
+                                              "not_inside", "unstable"], "image_size": 84, "pending": 0}
 
 
 def test_requests_carry_a_request_id(client):
