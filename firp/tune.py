@@ -28,6 +28,7 @@ from safetensors.torch import load_file
 
 from firp.bundle import BundleMember, export_bundle
 from firp.core.cli_types import int_in_range
+from firp.core.decisions import decision_evidence
 from firp.flags import add_model_flags, add_training_flags, check_data_flag, recipe_from
 from firp.presets import preset
 from firp.core.contract import PlanLimits
@@ -166,6 +167,7 @@ def export_top_ensemble(study: optuna.Study, data: SequenceData, dataset_path: P
                  "valid_balanced_accuracy_at_threshold": ba_at_threshold},
         training_data_hash=data.dataset_hash, training_data_path=str(dataset_path),
         t_range=PlanLimits(data.actions.shape[1], data.actions.shape[1]), overwrite=True,
+        evidence=decision_evidence(labels, ensemble, threshold),
         extra={"study": study.study_name, "trials": [t.number for t in chosen],
                "recipe": study.user_attrs.get("recipe"),
                # the episodes the threshold, the metrics and the ECE above were computed on

@@ -36,6 +36,8 @@ COMMANDS: dict[str, tuple[str, Callable[[list[str], str], int]]] = {
                 _run("planner_client.__main__", prefix=("collect",))),
     "tune": ("Optuna study over the training parameters; --export writes the top-five bundle",
              _run("firp.tune", prog=False)),
+    "certify": ("measure a bundle's decision evidence on its validation episodes (into its manifest)",
+                _run("firp.bundle.evidence")),
     "evaluate": ("the evaluation protocol: every method on the same splits", _run("firp.evaluate", prog=False)),
     "serve": ("the scoring service (FastAPI): POST /v1/score, the V2 inference protocol", _run("service.__main__")),
     "sim": ("the sim worker (FastAPI over MuJoCo): start episodes, execute plans",

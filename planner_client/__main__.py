@@ -23,7 +23,8 @@ import sys
 import time
 from pathlib import Path
 
-from firp.core.cli_types import int_in_range, non_negative_float
+from firp.core.cli_types import int_in_range, non_negative_float, open_unit_float
+from firp.core.decisions import DECISION_RULES
 from firp.core.contract import DEFAULT_T, T_MAX, T_MIN
 
 EXIT_USAGE, EXIT_SERVICE, EXIT_INTERRUPTED = 2, 3, 130
@@ -61,6 +62,18 @@ def add_run_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                           "planner's choice in robosuite's (the replanning budget; also the oracle's)")
     run.add_argument("--threshold", type=non_negative_float("--threshold"), default=None,
                      help="accept a plan when its score is >= this (default: the service's threshold)")
+    run.add_argument("--rule", choices=DECISION_RULES, default="threshold",
+                     help="which plan TAMP + FIRP executes: threshold (the paper's: the first whose score reaches the "
+                          "threshold, else the last scored), rank (plan every candidate, score them in one call, "
+                          "execute the highest), conformal (the paper's rule at the threshold that bounds the rate of "
+                          "accepted failures at --alpha, from the bundle's validation failures)")
+    run.add_argument("--alpha", type=open_unit_float("--alpha"), default=0.1,
+                     help="the conformal rule's false-accept rate (default 0.1)")
+    run.add_argument("--no-compare-rules", action="store_true",
+                     help="skip scoring every candidate for the summary's side-by-side table of the rules")
+    run.add_argument("--replan-on-uninformative", action="store_true",
+                     help="replan on the scores even when the bundle is not shown better than chance (its validation "
+                          "interval reaches 0.5); by default TAMP's first plan is executed then")
     run.add_argument("--horizon", type=int_in_range("--horizon", T_MIN, T_MAX), default=None,
                      help=f"plan length T in steps at 4 FPS (our world; default {DEFAULT_T}); must be in the bundle's "
                           "T range. robosuite's tasks have their own T")
@@ -227,7 +240,9 @@ def run_command(args: argparse.Namespace, parser: argparse.ArgumentParser, argv:
         parser.error(f"--out {out} exists; pass --resume to continue it or choose another file")
     config = RunConfig(task=args.task, trials=args.trials, seed=args.seed, max_iterations=args.max_iterations,
                        oracle=not args.no_oracle, out=out, resume=args.resume, threshold=args.threshold,
-                       record=args.record, world=args.world)
+                       record=args.record, world=args.world, rule=args.rule, alpha=args.alpha,
+                       compare_rules=not args.no_compare_rules,
+                       replan_on_uninformative=args.replan_on_uninformative)
     plan = ServicePlan(task=args.task, out_dir=out.parent, sim_url=args.sim, service_url=args.service,
                        bundle=args.bundle, score=not args.no_score, api_key=args.api_key,
                        ready_timeout=args.ready_timeout, world=args.world)
@@ -238,7 +253,7 @@ def run_command(args: argparse.Namespace, parser: argparse.ArgumentParser, argv:
     out.parent.mkdir(parents=True, exist_ok=True)
     records = [r for r in read_records(out) if r["trial"] < args.trials] if args.resume else []
     if records:  # refuse other settings now, not after launching the services (the model is checked later)
-        flags = {**run_identity(config, planner, None), "scoring": not args.no_score}
+        flags = run_identity(config, planner, None, scoring=not args.no_score)
         try:
             check_resumable(read_records(out), flags, out, ignore=("model",))
         except RunSetupError as exc:

@@ -9,6 +9,7 @@ never depend on the worker's memory.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -147,6 +148,19 @@ class ScoreClient:
         if missing:
             raise ServiceError(self.http.name, self.base_url + "/v1/score",
                                f"scoring service at {self.base_url} answered without {missing}: {str(answer)[:300]}")
+        return answer
+
+    def score_batch(self, image_b64: str, plans: Sequence[np.ndarray], task: str) -> dict:
+        """``POST /v1/score/batch``: every plan for one image in one call (one image decode, one backbone pass);
+        the answer's ``results`` are in the plans' order. Each plan is checked against the contract first."""
+        checked = [validate_plan(p, field=f"plans[{i}]").tolist() for i, p in enumerate(plans)]
+        answer = self.http.request("POST", "/v1/score/batch",
+                                   json={"image": image_b64, "plans": checked, "task": task}).json()
+        results = answer.get("results")
+        if not isinstance(results, list) or len(results) != len(checked) or "threshold" not in answer:
+            raise ServiceError(self.http.name, self.base_url + "/v1/score/batch",
+                               f"scoring service at {self.base_url} answered without {len(checked)} results and a "
+                               f"threshold: {str(answer)[:300]}")
         return answer
 
     def model(self) -> dict:

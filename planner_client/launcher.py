@@ -213,6 +213,9 @@ class RestartingScorer(_Restarting[ScoreClient]):
     def score(self, image_b64: str, plan: np.ndarray, task: str) -> dict:
         return self._call(lambda c: c.score(image_b64, plan, task))
 
+    def score_batch(self, image_b64: str, plans: Sequence[np.ndarray], task: str) -> dict:
+        return self._call(lambda c: c.score_batch(image_b64, plans, task))
+
     def model(self) -> dict:
         return self._call(lambda c: c.model())
 

@@ -2,11 +2,22 @@
 
 One trial (scene seed ``seed + trial``):
 
-1. **TAMP + FIRP** -- plan with the planner's first candidate (in our world the first block order of
-   :func:`block_orders`; in the robosuite world the default :class:`~planner_client.robosuite_tamp.Choice`),
-   score the plan with the scoring service; while the score is below the threshold and fewer than
-   ``max_iterations`` plans were scored, replan with the next candidate and score again. The accepted plan -- or,
-   when the budget ran out, the *last* one scored, as the paper does -- is executed in the simulator.
+1. **TAMP + FIRP** -- under the run's decision rule (``--rule``, :mod:`firp.core.decisions`):
+
+   * ``threshold``, the paper's and the default: plan with the planner's first candidate (in our world the
+     first block order of :func:`block_orders`; in the robosuite world the default
+     :class:`~planner_client.robosuite_tamp.Choice`), score the plan with the scoring service; while the
+     score is below the threshold and fewer than ``max_iterations`` plans were scored, replan with the next
+     candidate and score again. The accepted plan -- or, when the budget ran out, the *last* one scored, as
+     the paper does -- is executed in the simulator.
+   * ``rank``: plan every candidate, score them in one ``/v1/score/batch`` call, execute the highest.
+   * ``conformal``: the paper's loop at the threshold that bounds the rate of accepted failures at
+     ``alpha``, from the bundle's validation failures' scores.
+
+   When the bundle's validation interval reaches 0.5 (not shown better than chance), no rule is applied:
+   TAMP's first plan is executed (``firp_rule: tamp_first``), so the scorer cannot make the loop worse than
+   TAMP alone. With ``compare_rules`` every candidate is also scored in one call and each rule's pick
+   executed, so the record says what every rule would have done on the scene.
 2. **TAMP alone** -- the planner's first plan, executed without scoring, on the same episode.
 3. **Oracle** -- the first candidate (same order, same budget) whose plan succeeds when executed:
    the ceiling of replanning over the planner's candidates within this budget.
@@ -30,6 +41,8 @@ from typing import Any, Hashable, Iterator, Protocol, Sequence
 
 import numpy as np
 
+from firp.core.decisions import (DECISION_RULES, chosen_by_rule, conformal_threshold, first_accepted, highest,
+                                 is_informative)
 from planner_client.backend import SimBackend, SimOutcome
 from planner_client.ik import IKFailure
 from planner_client.recording import ExecutionRecorder, frames_of
@@ -48,6 +61,10 @@ class RunConfig:
     threshold: float | None = None  # None: the service's own threshold (each answer carries it)
     record: Path | None = None  # record every executed plan, with frames, as episodes here (planner_client.recording)
     world: str = "mujoco"  # for the recorded dataset's attrs
+    rule: str = "threshold"  # firp.core.decisions.DECISION_RULES: the paper's, the ranking, the conformal one
+    alpha: float = 0.1  # the conformal rule's bound on the false-accept rate
+    compare_rules: bool = True  # also score every candidate, so the summary shows every rule side by side
+    replan_on_uninformative: bool = False  # replan even when the bundle is not shown better than chance
 
 
 class Planner(Protocol):
@@ -68,6 +85,8 @@ class Scorer(Protocol):
     """What the loop needs of the scoring service (:class:`planner_client.clients.ScoreClient`)."""
 
     def score(self, image_b64: str, plan: np.ndarray, task: str) -> dict: ...
+
+    def score_batch(self, image_b64: str, plans: Sequence[np.ndarray], task: str) -> dict: ...
 
     def model(self) -> dict: ...
 
@@ -93,15 +112,30 @@ def read_records(path: Path) -> list[dict]:
     return records
 
 
-def run_identity(config: RunConfig, planner: Planner, model: dict | None) -> dict:
-    """What must not change between the parts of one run (``trials`` may grow: that extends it)."""
+def run_identity(config: RunConfig, planner: Planner, model: dict | None, scoring: bool | None = None) -> dict:
+    """What must not change between the parts of one run (``trials`` may grow: that extends it).
+
+    ``scoring`` defaults to whether a model is given (the CLI checks its flags before the service names it)."""
+    scoring = model is not None if scoring is None else scoring
     identity = {
         "task": config.task, "seed": config.seed, "max_iterations": config.max_iterations,
         "threshold": config.threshold, "horizon": planner.horizon(config.task), "oracle": config.oracle,
-        "scoring": model is not None,
-        "model": None if model is None else {"name": model.get("name"), "version": model.get("version")},
+        "scoring": scoring,
+        "model": None if model is None else {"name": model.get("name"), "version": model.get("version"),
+                                             "evidence": _evidence_summary(model.get("decision_evidence"))},
     }
+    if scoring:
+        identity.update(rule=config.rule, alpha=config.alpha, compare_rules=config.compare_rules,
+                        replan_on_uninformative=config.replan_on_uninformative)
     return json.loads(json.dumps(identity))  # as it reads back from the file
+
+
+def _evidence_summary(evidence: dict | None) -> dict | None:
+    """The bundle's validation evidence as a run's records keep it (the failure scores stay in the bundle)."""
+    if not evidence:
+        return None
+    return {"balanced_accuracy": evidence.get("balanced_accuracy"), "interval": evidence.get("interval"),
+            "informative": is_informative(evidence)}
 
 
 def check_resumable(records: list[dict], identity: dict, out: Path, ignore: tuple[str, ...] = ()) -> None:
@@ -209,10 +243,119 @@ def chosen_candidate(scores: Sequence[float], threshold: float) -> int:
     """Which of the plans scored in the loop's order the loop executes: the first one :func:`accepts`
     takes, else the last one scored (the paper's rule when the budget runs out). The replays of the
     loop on recorded candidates (``experiments.replan_threshold``) call this, so there is one rule."""
-    for index, score in enumerate(scores):
-        if accepts(score, threshold):
-            return index
-    return len(scores) - 1
+    return first_accepted(scores, threshold)[0]
+
+
+NEVER = float(np.nextafter(1.0, 2.0))  # a threshold no probability reaches (finite, so JSON can hold it)
+
+
+@dataclass(frozen=True)
+class Decision:
+    """How the run decides, fixed before its first trial from the settings and the bundle's evidence."""
+
+    rule: str  # the rule whose pick TAMP + FIRP executes; "tamp_first" when the bundle is uninformative
+    threshold: float | None  # the run's threshold (None: the service's, read from each answer)
+    conformal: float | None  # the conformal threshold at alpha (None: the bundle carries no evidence)
+    informative: bool | None  # the bundle's evidence (None: it carries none)
+
+
+def decision_for(config: RunConfig, model: dict) -> Decision:
+    """The run's :class:`Decision`; refuses a conformal rule on a bundle without failure scores."""
+    if config.rule not in DECISION_RULES:
+        raise RunSetupError(f"--rule {config.rule}: one of {', '.join(DECISION_RULES)}")
+    evidence = model.get("decision_evidence") or {}
+    informative = is_informative(evidence)
+    conformal = None
+    if evidence.get("failure_scores"):
+        conformal = conformal_threshold(evidence["failure_scores"], config.alpha)
+    elif config.rule == "conformal":
+        raise RunSetupError(f"--rule conformal: the scoring service's bundle {model.get('name')!r} carries no "
+                            "validation failure scores (decision_evidence); run `firp certify` on it first")
+        conformal = min(conformal, NEVER)  # too few failures to bound alpha: no score clears it
+    rule = config.rule
+    if informative is False and not config.replan_on_uninformative:
+        rule = "tamp_first"
+    return Decision(rule, config.threshold, conformal, informative)
+
+
+def score_every_candidate(work: TrialWork, scorer: Scorer, orders: list[Hashable]) -> tuple[list[Hashable], dict]:
+    """The plannable candidates (in the planner's order) and one ``/v1/score/batch`` answer for all of
+    them; candidates scored before keep their scores (the service is deterministic: the same numbers)."""
+    plannable = [c for c in orders if work.plan(c) is not None]
+    if not plannable:
+        raise IKFailure(f"seed {work.episode.seed}: the planner could plan none of its {len(orders)} candidates")
+    started = time.perf_counter()
+    answer = scorer.score_batch(work.episode.image_b64, [work.plans[c] for c in plannable], work.episode.task)
+    work.timing["score_s"] += time.perf_counter() - started
+    for candidate, result in zip(plannable, answer["results"]):
+        work.scores.setdefault(candidate, float(result["score"]))
+    return plannable, answer
+
+
+def rules_side_by_side(work: TrialWork, scorer: Scorer, orders: list[Hashable], decision: Decision,
+                       service_threshold: float) -> dict:
+    """Every rule's pick among all candidates, executed (executions are shared), for the summary's
+    side-by-side table: what each rule would have given on this scene."""
+    plannable, _ = score_every_candidate(work, scorer, orders)
+    scores = [work.scores[c] for c in plannable]
+    threshold = service_threshold if decision.threshold is None else decision.threshold
+    rules: dict[str, dict] = {}
+    for rule in DECISION_RULES:
+        if rule == "conformal" and decision.conformal is None:
+            continue
+        index, accepted = chosen_by_rule(rule, scores, threshold, decision.conformal)
+        outcome = work.execute(plannable[index])
+        rules[rule] = {"order": work.planner.describe(plannable[index]), "accepted": bool(accepted),
+                       "success": bool(outcome.success),
+                       "threshold": decision.conformal if rule == "conformal" else threshold}
+    first = work.execute(orders[0])
+    rules["tamp_first"] = {"order": work.planner.describe(orders[0]), "accepted": None,
+                           "success": bool(first.success)}
+    return {"rules": rules, "candidate_scores": {json.dumps(work.planner.describe(c)): work.scores[c]
+                                                 for c in plannable}}
+
+
+def rank_all(work: TrialWork, scorer: Scorer, orders: list[Hashable], threshold: float | None) -> dict:
+    """The ranking rule: plan every candidate, score them in one call, execute the highest-scored."""
+    plannable, answer = score_every_candidate(work, scorer, orders)
+    scores = [work.scores[c] for c in plannable]
+    used_threshold = float(answer["threshold"]) if threshold is None else threshold
+    index = highest(scores)
+    outcome = work.execute(plannable[index])
+    return {"firp_success": bool(outcome.success), "firp_reason": outcome.reason,
+            "firp_accepted": scores[index] >= used_threshold, "firp_iterations": len(scores),
+            "firp_order": work.planner.describe(plannable[index]), "scores": scores, "threshold": used_threshold,
+            "service_threshold": float(answer["threshold"])}
+
+
+def tamp_first(work: TrialWork, scorer: Scorer, orders: list[Hashable]) -> dict:
+    """An uninformative bundle: its score of TAMP's first plan is recorded, the plan executed regardless
+    (``firp_accepted`` says whether the score reached the threshold, as for the ranking's pick)."""
+    plan = work.plan(orders[0])
+    if plan is None:
+        raise IKFailure(f"seed {work.episode.seed}: the planner cannot plan its first candidate "
+                        f"({work.unplannable[orders[0]]})")
+    started = time.perf_counter()
+    answer = scorer.score(work.episode.image_b64, plan, work.episode.task)
+    work.timing["score_s"] += time.perf_counter() - started
+    work.scores[orders[0]] = float(answer["score"])
+    outcome = work.execute(orders[0])
+    accepted = work.scores[orders[0]] >= float(answer["threshold"])  # what the score says of the executed plan
+    return {"firp_success": bool(outcome.success), "firp_reason": outcome.reason, "firp_accepted": accepted,
+            "firp_iterations": 1, "firp_order": work.planner.describe(orders[0]), "scores": [work.scores[orders[0]]],
+            "threshold": float(answer["threshold"]), "service_threshold": float(answer["threshold"])}
+
+
+def decide(work: TrialWork, scorer: Scorer, orders: list[Hashable], decision: Decision) -> dict:
+    """The FIRP part of the record under the run's rule."""
+    if decision.rule == "tamp_first":
+        part = tamp_first(work, scorer, orders)
+    elif decision.rule == "rank":
+        part = rank_all(work, scorer, orders, decision.threshold)
+    else:
+        threshold = decision.conformal if decision.rule == "conformal" else decision.threshold
+        part = replan_until_accepted(work, scorer, orders, threshold)
+    return {"firp_rule": decision.rule, **part}
 
 
 def replan_until_accepted(work: TrialWork, scorer: Scorer, orders: list[Hashable],
@@ -233,7 +376,7 @@ def replan_until_accepted(work: TrialWork, scorer: Scorer, orders: list[Hashable
         work.timing["score_s"] += time.perf_counter() - started
         used_threshold = float(answer["threshold"]) if threshold is None else threshold
         scores.append(float(answer["score"]))
-        work.scores[candidate] = scores[-1]
+        work.scores.setdefault(candidate, scores[-1])
         if accepts(scores[-1], used_threshold):
             accepted = True
             break
@@ -254,16 +397,18 @@ def oracle_line(work: TrialWork, orders: list[Hashable]) -> dict:
 
 
 def run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: Planner, scorer: Scorer | None,
-              identity: dict, recorder: ExecutionRecorder | None = None) -> dict:
+              identity: dict, recorder: ExecutionRecorder | None = None, decision: Decision | None = None) -> dict:
     """One trial's record (see the module docstring for what is run). Every call of the trial to the sim
     worker and the scoring service carries the trial's ``X-Request-ID``, which the record keeps."""
     with request_id(f"trial-{trial}-{uuid.uuid4().hex[:12]}") as rid:
-        record = _run_trial(trial, config, sim, planner, scorer, identity, recorder)
+        if scorer is not None and decision is None:
+            decision = decision_for(config, scorer.model())
+        record = _run_trial(trial, config, sim, planner, scorer, identity, recorder, decision)
     return {**record, "request_id": rid}
 
 
 def _run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: Planner, scorer: Scorer | None,
-               identity: dict, recorder: ExecutionRecorder | None) -> dict:
+               identity: dict, recorder: ExecutionRecorder | None, decision: Decision | None) -> dict:
     started = time.perf_counter()
     seed = config.seed + trial
     episode = sim.start(config.task, seed)
@@ -273,7 +418,10 @@ def _run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: Pla
     work.timing["start_s"] = time.perf_counter() - started
     record: dict = {"trial": trial, "seed": seed, "task": config.task, "run": identity}
     if scorer is not None:
-        record.update(replan_until_accepted(work, scorer, orders, config.threshold))
+        assert decision is not None
+        record.update(decide(work, scorer, orders, decision))
+        if config.compare_rules:
+            record.update(rules_side_by_side(work, scorer, orders, decision, record["service_threshold"]))
     tamp = work.execute(orders[0])
     record.update(tamp_success=bool(tamp.success), tamp_reason=tamp.reason)
     if scorer is not None:
@@ -303,8 +451,10 @@ def run_trials(config: RunConfig, sim: SimBackend[Any], planner: Planner,
         raise FileExistsError(f"--out: {config.out} exists; pass --resume to continue it or choose another file")
     records = read_records(config.out)
     check_resumable(records, identity, config.out)
+    decision = None
     if model is not None:
         check_model(model, config, planner)
+        decision = decision_for(config, model)
     config.out.parent.mkdir(parents=True, exist_ok=True)
     done = {r["trial"] for r in records}
     # rewrite without a torn tail so appends start on a clean line
@@ -316,7 +466,7 @@ def run_trials(config: RunConfig, sim: SimBackend[Any], planner: Planner,
             for trial in range(config.trials):
                 if trial in done:
                     continue
-                record = run_trial(trial, config, sim, planner, scorer, identity, recorder)
+                record = run_trial(trial, config, sim, planner, scorer, identity, recorder, decision)
                 if recorder is not None:
                     record["recorded_executions"] = record["executions"]
                 sink.write(json.dumps(record) + "\n")

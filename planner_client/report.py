@@ -3,7 +3,10 @@
 Table 1 -- success rate over all trials: TAMP alone, TAMP + FIRP, and the oracle line (the ceiling
 of replanning over block orders within the budget). Table 2 -- the same three, over the trials in
 which FIRP accepted a plan (a score reached the threshold), with how many that were: what a
-deployment that refuses to execute unaccepted plans would see.
+deployment that refuses to execute unaccepted plans would see. Table 3 -- the decision rules side by
+side on the same scenes (the paper's rule, the ranking, the conformal rule, TAMP's first plan), when
+the run scored every candidate. Above the tables: the bundle's validation evidence and what the run
+did with an uninformative bundle.
 
 Everything is computed from the JSONL records alone (a resumed run's records included), so the
 report can be rebuilt from a run file at any time. Rates of an empty set are ``None`` (JSON null),
@@ -35,6 +38,27 @@ def _table(records: list[dict], universe: list[dict]) -> dict:
     return {name: _rate(records, key, universe) for name, key, _ in LINES}
 
 
+RULES = (("threshold", "the paper's rule: first plan at or above the threshold, else the last scored"),
+         ("rank", "ranking: the highest-scored of all candidates"),
+         ("conformal", "conformal: the paper's rule at the threshold bounding accepted failures at alpha"),
+         ("tamp_first", "TAMP's first plan (what an uninformative bundle gets)"))
+
+
+def _rules_table(records: list[dict]) -> dict | None:
+    """Per rule, over the trials that compared the rules: successes, trials, rate, how many accepted."""
+    compared = [r for r in records if "rules" in r]
+    if not compared:
+        return None
+    table = {}
+    for rule, _ in RULES:
+        picks = [r["rules"][rule] for r in compared if rule in r["rules"]]
+        if picks:
+            k = sum(p["success"] for p in picks)
+            table[rule] = {"successes": k, "trials": len(picks), "rate": k / len(picks),
+                           "accepted": sum(bool(p["accepted"]) for p in picks)}
+    return table
+
+
 def summarise(records: list[dict]) -> dict:
     """Both tables and the run's settings, from the records (one per trial)."""
     n = len(records)
@@ -48,6 +72,8 @@ def summarise(records: list[dict]) -> dict:
                             if scored else None),
     }
     if scored:
+        out["firp_rule"] = sorted({r.get("firp_rule", "threshold") for r in scored})
+        out["rules"] = _rules_table(scored)
         out["firp_mean_iterations"] = sum(r["firp_iterations"] for r in scored) / len(scored)
         out["thresholds"] = sorted({r["threshold"] for r in scored})
     out["mean_timing_s"] = {k: sum(r[k] for r in records if k in r) / n
@@ -95,25 +121,74 @@ def _settings_line(summary: dict) -> str:
         thresholds = ", ".join(f"{t:g}" for t in summary.get("thresholds", []))
         firp = (f"at most {budget} plans scored per trial, threshold "
                 + (f"{threshold:g}" if threshold is not None else f"{thresholds} (the service's)"))
+        if run.get("rule"):
+            firp += f", decision rule {run['rule']}" + (f" (alpha {run['alpha']:g})" if run["rule"] == "conformal" else "")
     model = run.get("model")
     model_text = f", model {model.get('name')} (version {model.get('version')})" if model else ""
     return f"Scene seeds {seeds}, {firp}, plan horizon T = {run.get('horizon')}{model_text}."
 
 
+def _evidence_line(summary: dict) -> list[str]:
+    """What the bundle's validation evidence says, and what the run did about it."""
+    evidence = (summary["run"].get("model") or {}).get("evidence")
+    if not evidence:
+        return ["The bundle carries no validation evidence (`firp certify` measures it); its scores were used."]
+    low, high = evidence["interval"]
+    text = (f"The bundle's validation balanced accuracy is {evidence['balanced_accuracy']:.3f}, "
+            f"95% interval [{low:.3f}, {high:.3f}]")
+    if evidence["informative"]:
+        return [text + ": above chance."]
+    if "tamp_first" in summary.get("firp_rule", []):
+        return [text + ", which reaches 0.5: the bundle is not shown better than chance, so TAMP + FIRP executed "
+                "TAMP's first plan (its scores were recorded, not used; `--replan-on-uninformative` overrides)."]
+    return [text + ", which reaches 0.5; the run replanned on its scores anyway (`--replan-on-uninformative`)."]
+
+
+def _rules_section(summary: dict) -> list[str]:
+    table = summary.get("rules")
+    if not table:
+        return []
+    used = summary.get("firp_rule", [])
+    rows = ["", "## 3. Decision rules side by side", "",
+            "Every candidate planned and scored in one call; each rule's pick executed on the same scene "
+            "(executions shared).", "",
+            "| rule | successes | success rate | picks at or above the threshold |", "|---|---|---|---|"]
+    for rule, label in RULES:
+        if rule in table:
+            line = table[rule]
+            mark = " (this run)" if rule in used else ""
+            if rule == "conformal":
+                label = label.replace("at alpha", f"at alpha = {summary['run'].get('alpha', 0.1):g}")
+            accepted = "n/a" if rule == "tamp_first" else f"{line['accepted']}/{line['trials']}"
+            rows.append(f"| {label}{mark} | {line['successes']}/{line['trials']} | {100 * line['rate']:.1f}% | "
+                        f"{accepted} |")
+    return rows
+
+
 def markdown(summary: dict) -> str:
     """Both tables as Markdown (also what is printed at the end of a run)."""
     labels = _labels(summary)
+    evidence = _evidence_line(summary) if summary.get("accepted_trials") is not None else []
     lines = [f"# {summary['task']}: {summary['trials']} trials", "", _settings_line(summary), "",
+             *([*evidence, ""] if evidence else []),
              "## 1. Success rate over all trials", "", *_markdown_table(summary["all_trials"], labels),
              "", "## 2. Success rate over the trials FIRP accepted", ""]
     acc = summary.get("accepted_trials")
     if acc is None:
         lines.append("FIRP did not run (--no-score).")
     else:
-        others = ("" if acc["accepted"] == acc["of"] else
-                  "; in the others it executed the last plan after the budget ran out")
-        lines += [f"FIRP accepted a plan in {acc['accepted']} of {acc['of']} trials{others}.", "",
-                  *_markdown_table(acc, labels)]
+        if summary.get("firp_rule") == ["tamp_first"]:
+            sentence = (f"TAMP's first plan, executed in every trial, scored at or above the threshold in "
+                        f"{acc['accepted']} of {acc['of']} trials.")
+        elif summary.get("firp_rule") == ["rank"]:
+            sentence = (f"The highest-scored plan, executed in every trial, scored at or above the threshold in "
+                        f"{acc['accepted']} of {acc['of']} trials.")
+        else:
+            others = ("" if acc["accepted"] == acc["of"] else
+                      "; in the others it executed the last plan after the budget ran out")
+            sentence = f"FIRP accepted a plan in {acc['accepted']} of {acc['of']} trials{others}."
+        lines += [sentence, "", *_markdown_table(acc, labels)]
+    lines += _rules_section(summary)
     if "firp_mean_iterations" in summary:
         lines += ["", f"Mean plans scored per trial: {summary['firp_mean_iterations']:.2f}."]
     timing = summary.get("mean_timing_s") or {}

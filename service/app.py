@@ -211,8 +211,8 @@ def _health_router() -> APIRouter:
         state = request.app.state
         if state.phase != "ready":
             return JSONResponse(ReadyResponse(status=state.phase).model_dump(), status_code=503)
-        return JSONResponse(ReadyResponse(status="ready", model=_model_ref(state.model),
-                                          warmup_ms=state.model.warmup_ms).model_dump())
+        return JSONResponse(ReadyResponse(status="ready", model=_model_ref(state.model), warmup_ms=state.model.warmup_ms,
+                                          informative=state.model.informative).model_dump())
 
     @router.get("/metrics", response_class=Response, summary="Prometheus metrics (text exposition format)",
                 responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}})

@@ -20,7 +20,7 @@ methods other than the usual seven are ``other``):
   (``queued``: dropped before any work; ``running``: the pass was under way), see
   :mod:`service.admission`; ``firp_admitted_requests`` and ``firp_queued_plans`` -- the two bounded
   quantities now;
-* ``firp_ready``, ``firp_model_info{name,version,task}`` and in-flight requests.
+* ``firp_ready``, ``firp_model_info{name,version,task}``, ``firp_model_informative`` and in-flight requests.
 """
 
 from __future__ import annotations
@@ -75,6 +75,9 @@ class ServiceMetrics:
         self.ready = Gauge("firp_ready", "1 when the bundle is loaded and warmed up", registry=r)
         self.model_info = Gauge("firp_model_info", "The loaded bundle (value 1)", ["name", "version", "task"],
                                 registry=r)
+        self.model_informative = Gauge(
+            "firp_model_informative", "1: the bundle's validation balanced accuracy interval lies above 0.5; "
+            "0: it reaches 0.5 (clients execute TAMP's first plan); -1: the bundle carries no evidence", registry=r)
 
     def observe_inference(self, endpoint: str, seconds: float, n_plans: int, cache_hit: bool) -> None:
         self.inference.labels(endpoint).observe(seconds)

@@ -59,6 +59,7 @@ class ModelRepository:
         if old is not None and old is not model:
             metrics.model_info.labels(old.name, old.version, old.task).set(0)
         metrics.model_info.labels(model.name, model.version, model.task).set(1)
+        metrics.model_informative.set({True: 1, False: 0, None: -1}[model.informative])
         if state.phase in ("ready", "unloaded"):
             state.phase = "ready"
             metrics.ready.set(1)

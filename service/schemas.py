@@ -25,6 +25,7 @@ __all__ = [
     "ErrorResponse",
     "HealthResponse",
     "ModelInfo",
+    "DecisionEvidence",
     "ModelRef",
     "PlanResult",
     "ReadyResponse",
@@ -198,6 +199,23 @@ class ReadyResponse(BaseModel):
     status: Literal["ready", "starting", "draining", "unloaded", "stopping"]
     model: ModelRef | None = None
     warmup_ms: float | None = None
+    informative: bool | None = Field(None, description="false: the bundle's validation interval reaches 0.5, so "
+                                     "clients should not replan on its scores; null: the bundle carries no evidence")
+
+
+class DecisionEvidence(BaseModel):
+    """What decisions on the scores may rest on (firp.core.decisions; ``firp certify`` writes it)."""
+
+    balanced_accuracy: float = Field(description="the ensemble's validation balanced accuracy at the threshold")
+    interval: tuple[float, float] = Field(description="its bootstrap confidence interval")
+    level: float
+    resamples: int
+    method: str
+    informative: bool = Field(description="the interval's lower end lies above 0.5")
+    n_successes: int
+    n_failures: int
+    failure_scores: list[float] = Field(description="the validation failures' scores, sorted: a client's conformal "
+                                                    "threshold for a false-accept rate alpha comes from them")
 
 
 class MemberInfo(BaseModel):
@@ -238,6 +256,9 @@ class ModelInfo(BaseModel):
     metrics: dict[str, float] = Field(description="the ensemble's validation metrics")
     calibration: dict[str, float]
     training_data: dict[str, str]
+    informative: bool | None = Field(description="false: not shown better than chance on validation data (the "
+                                     "planner client then executes TAMP's first plan); null: no evidence")
+    decision_evidence: DecisionEvidence | None
     contract: ContractInfo
     image: ImageInfo
 

@@ -37,6 +37,7 @@ from torch import Tensor
 
 from firp.bundle import Bundle, load_bundle
 from firp.core.bundle_format import MANIFEST_NAME
+from firp.core.decisions import EVIDENCE_KEY, is_informative
 from firp.core.contract import (
     CATEGORIES,
     CATEGORY_INDEX,
@@ -183,6 +184,16 @@ class ServiceModel:
     def n_members(self) -> int:
         return self.scorer.n_members
 
+    @property
+    def evidence(self) -> dict | None:
+        """The manifest's decision evidence (firp.core.decisions), if the bundle carries it."""
+        return self.bundle.manifest.get(EVIDENCE_KEY)
+
+    @property
+    def informative(self) -> bool | None:
+        """Whether the validation interval lies above 0.5 (None: no evidence in the bundle)."""
+        return is_informative(self.evidence)
+
     def manifest_summary(self) -> dict[str, Any]:
         """The manifest as /v1/model reports it (see service.schemas.ModelInfo)."""
         m = self.bundle.manifest
@@ -199,6 +210,8 @@ class ServiceModel:
             "metrics": m.get("validation", {}),
             "calibration": m.get("calibration", {}),
             "training_data": m.get("training_data", {}),
+            "informative": self.informative,
+            "decision_evidence": self.evidence,
             "contract": {
                 "version": CONTRACT_VERSION,
                 "plan_width": PLAN_WIDTH,

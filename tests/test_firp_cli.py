@@ -21,7 +21,7 @@ print("LOADED", "torch" in sys.modules, "mujoco" in sys.modules)
 
 
 @pytest.mark.parametrize("command, torch_free", [("run", True), ("collect", True), ("sim", True), ("robosuite", True),
-                                                 ("tune", False),
+                                                 ("tune", False), ("certify", False),
                                                  ("evaluate", False), ("serve", False)])
 def test_each_subcommand_shows_its_own_options_and_imports_only_its_part(command, torch_free):
     out = subprocess.run([sys.executable, "-c", PROBE.format(command=command)], capture_output=True, text=True,
@@ -31,7 +31,7 @@ def test_each_subcommand_shows_its_own_options_and_imports_only_its_part(command
     loaded = out.stdout.strip().splitlines()[-1].split()
     if torch_free:
         assert loaded[1] == "False", f"firp {command} imported torch"
-    if command in ("tune", "evaluate", "serve"):
+    if command in ("tune", "certify", "evaluate", "serve"):
         assert loaded[2] == "False", f"firp {command} imported mujoco"
 
 
@@ -41,7 +41,7 @@ def test_the_list_of_commands_and_the_errors(capsys):
     listed = capsys.readouterr().out
     assert all(f"  {name} " in listed for name in COMMANDS)
     assert main(["juggle"]) == 2
-    assert "unknown command 'juggle'; one of run, collect, tune, evaluate, serve, sim, robosuite" in \
+    assert "unknown command 'juggle'; one of run, collect, tune, certify, evaluate, serve, sim, robosuite" in \
         capsys.readouterr().err
 
 

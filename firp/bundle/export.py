@@ -19,6 +19,7 @@ from torch import Tensor, nn
 from firp.bundle.types import POST_EXECUTION_KINDS, BundleMember, backbone_key, shared_encoder, state_mismatch
 from firp.core.bundle_format import BACKBONE_FILE, BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, MANIFEST_NAME, sha256_file
 from firp.core.contract import CATEGORIES, CONTRACT_VERSION, FPS, PLAN_WIDTH, T_MAX, T_MIN, PlanLimits
+from firp.core.decisions import EVIDENCE_KEY
 from firp.model.baselines import MODEL_KINDS, build_model
 from firp.model.encoder import EFFICIENTNET_LITE0_SHA256, build_backbone
 
@@ -74,6 +75,7 @@ def export_bundle(
     t_range: tuple[int, int] | PlanLimits,
     backbone: nn.Module | None = None,
     extra: Mapping[str, Any] | None = None,
+    evidence: Mapping[str, Any] | None = None,
     overwrite: bool = False,
 ) -> Path:
     """Write an ensemble bundle to ``out_dir`` and return its path.
@@ -84,7 +86,9 @@ def export_bundle(
     features the members were trained on: required (and embedded) unless the members use the
     pinned pretrained EfficientNet-Lite0, whose weights are identified by their sha256 instead.
     ``t_range`` is the range of plan lengths the members were trained and validated on; plans
-    outside it are rejected at scoring time.
+    outside it are rejected at scoring time. ``evidence`` (:func:`firp.core.decisions.decision_evidence`)
+    is the ensemble's validation balanced accuracy with its interval and the failures' scores, which the
+    service reports and the planner client's decisions rest on.
 
     Nothing is visible at ``out_dir`` until everything is written: the bundle is built in a
     temporary sibling directory and renamed. ``overwrite=True`` replaces an existing bundle (two
@@ -172,6 +176,8 @@ def export_bundle(
             "training_data": {"sha256": str(training_data_hash), "path": os.fspath(training_data_path)},
             "extra": dict(extra or {}),
         }
+        if evidence is not None:  # firp.core.decisions.decision_evidence: what decisions on the scores may rest on
+            manifest[EVIDENCE_KEY] = dict(evidence)
         with open(tmp / MANIFEST_NAME, "w", encoding="utf-8") as f:
             json.dump(manifest, f, indent=2, allow_nan=False)
             f.write("\n")

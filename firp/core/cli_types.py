@@ -37,3 +37,8 @@ def non_negative_float(name: str) -> Callable[[str], float]:
 def positive_float(name: str) -> Callable[[str], float]:
     """Parse a float flag that must be finite and > 0."""
     return _checked(name, float, "a number", lambda v: 0.0 < v < float("inf"), "> 0")
+
+
+def open_unit_float(name: str) -> Callable[[str], float]:
+    """Parse a probability flag that must lie strictly between 0 and 1."""
+    return _checked(name, float, "a number", lambda v: 0.0 < v < 1.0, "in (0, 1)")

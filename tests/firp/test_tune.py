@@ -53,3 +53,46 @@ def test_product_space_also_tunes_the_prediction_weight(tiny_dataset, tmp_path, 
     for t in study.trials:
         assert t.params["prediction"] in SPACES["product"]["prediction"]
         assert t.params["lr"] in SPACES["product"]["lr"]
+
+
+def test_an_exported_bundle_carries_decision_evidence_that_certify_reproduces(tiny_dataset, tmp_path, monkeypatch):
+    """The export measures the evidence on the training path's features; ``firp certify`` measures it again
+    through the serving path and must find the same balanced accuracy (else it refuses)."""
+    import json
+
+    from firp.bundle.evidence import certify_bundle
+    from firp.bundle.evidence import main as certify_main
+    from firp.core.decisions import EVIDENCE_KEY
+
+    monkeypatch.chdir(tmp_path)
+    storage = f"sqlite:///{tmp_path / 'study.db'}"
+    bundle_dir = tmp_path / "bundle"
+    assert main(["--data", str(tiny_dataset), "--trials", "2", "--epochs", "2", "--threads", "1", "--image-size", "32",
+                 "--storage", storage, "--cache-dir", str(tmp_path / "cache"), "--no-progress", "--space", "paper",
+                 "--export", str(bundle_dir)]) == 0
+    exported = json.loads((bundle_dir / "manifest.json").read_text())[EVIDENCE_KEY]
+    low, high = exported["interval"]
+    assert low <= exported["balanced_accuracy"] <= high and exported["informative"] == (low > 0.5)
+    assert exported["n_successes"] + exported["n_failures"] == 4  # 20% of the 20 episodes
+    assert len(exported["failure_scores"]) == exported["n_failures"]
+    weights = sorted(p.name for p in bundle_dir.glob("*.safetensors"))
+
+    certified = certify_bundle(bundle_dir, tiny_dataset, progress=False)
+    assert certified["balanced_accuracy"] == exported["balanced_accuracy"]
+    np.testing.assert_allclose(certified["failure_scores"], exported["failure_scores"], atol=1e-5)
+    assert certified["dataset"]["is_training_data"] is True
+    again = load_bundle(bundle_dir)  # the rewritten manifest still verifies; the weights are untouched
+    assert again.manifest[EVIDENCE_KEY]["dataset"]["sha256"] == again.manifest["training_data"]["sha256"]
+    assert sorted(p.name for p in bundle_dir.glob("*.safetensors")) == weights
+
+    # another dataset: refused, naming the rule; nothing is rewritten
+    other = tmp_path / "other.h5"
+    other.write_bytes(tiny_dataset.read_bytes())
+    import h5py
+
+    with h5py.File(other, "a") as f:
+        first = sorted(f["data"])[0]
+        f["data"][first]["actions"][0, 8] += 1e-3  # another collection: other content, so another hash
+    before = (bundle_dir / "manifest.json").read_bytes()
+    assert certify_main(["--bundle", str(bundle_dir), "--data", str(other), "--no-progress"]) == 2
+    assert (bundle_dir / "manifest.json").read_bytes() == before

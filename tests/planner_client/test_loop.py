@@ -61,6 +61,7 @@ class ScriptedScorer:
     def __init__(self, scores: list[float], threshold: float):
         self.scores, self.threshold = list(scores), threshold
         self.plans: list = []
+        self.batches: list[list] = []
 
     def model(self) -> dict:
         return {"name": "scripted", "version": "1", "task": "stacking", "contract": {"t_min": T, "t_max": T}}
@@ -69,6 +70,13 @@ class ScriptedScorer:
         assert image_b64 and task == "stacking"
         self.plans.append(plan)
         return {"score": self.scores[len(self.plans) - 1], "threshold": self.threshold}
+
+    def score_batch(self, image_b64: str, plans, task: str) -> dict:
+        """All candidates in one call (the ranking, the side-by-side table): the k-th candidate gets
+        ``scores[k]``, so a plan scored alone before gets the same score again, as from the service."""
+        assert image_b64 and task == "stacking"
+        self.batches.append(list(plans))
+        return {"results": [{"score": self.scores[k]} for k in range(len(plans))], "threshold": self.threshold}
 
 
 @pytest.fixture(scope="module")
@@ -177,8 +185,9 @@ def test_the_first_plan_at_or_above_the_threshold_is_the_one_executed(tmp_path, 
         def close(self):
             pass
 
-    [r] = run_trials(RunConfig(trials=1, out=tmp_path / "r.jsonl", max_iterations=6, oracle=False), Recording(),
-                     planner, scripted)
+    # the paper's loop alone: no side-by-side scoring of the other candidates
+    [r] = run_trials(RunConfig(trials=1, out=tmp_path / "r.jsonl", max_iterations=6, oracle=False,
+                               compare_rules=False), Recording(), planner, scripted)
     order = ORDERS[accept_at - 1]
     assert (r["firp_accepted"], r["firp_iterations"], r["firp_order"]) == (True, accept_at, order)
     assert r["scores"] == scores[:accept_at] and r["threshold"] == 0.6
@@ -490,3 +499,76 @@ def test_frames_of_reads_the_sim_workers_base64_frames_and_refuses_none():
     np.testing.assert_array_equal(frames_of(SimpleNamespace(frames=frames)), frames)
     with pytest.raises(ValueError, match="no frames"):
         frames_of(SimpleNamespace(frames_b64=None))
+
+
+# -- the decision rules, the side-by-side table and uninformative bundles ---------------------------------
+class EvidencedScorer(ScriptedScorer):
+    """A scripted scorer whose bundle carries decision evidence (firp.core.decisions)."""
+
+    def __init__(self, scores: list[float], threshold: float, evidence: dict):
+        super().__init__(scores, threshold)
+        self.evidence = evidence
+
+    def model(self) -> dict:
+        return {**super().model(), "decision_evidence": self.evidence}
+
+
+def _evidence(low: float, failure_scores: list[float]) -> dict:
+    return {"balanced_accuracy": low + 0.1, "interval": [low, low + 0.2], "informative": low > 0.5,
+            "failure_scores": failure_scores}
+
+
+def test_the_ranking_executes_the_highest_scored_candidate_and_every_rule_is_compared(tmp_path, sim_and_planner):
+    sim, planner = sim_and_planner
+    scores = [0.2, 0.7, 0.1, 0.95, 0.3, 0.4]  # the paper's rule takes the 2nd (0.7 >= 0.6); the ranking the 4th
+    scripted = ScriptedScorer(scores, threshold=0.6)
+    [r] = run_trials(RunConfig(trials=1, out=tmp_path / "r.jsonl", max_iterations=6, oracle=False, rule="rank"),
+                     sim, planner, scripted)
+    assert (r["firp_rule"], r["firp_order"], r["firp_accepted"]) == ("rank", list(ORDERS[3]), True)
+    assert r["scores"] == scores and scripted.plans == [] and len(scripted.batches[0]) == 6
+    rules = r["rules"]
+    assert rules["threshold"]["order"] == list(ORDERS[1]) and rules["threshold"]["accepted"] is True
+    assert rules["rank"]["order"] == list(ORDERS[3]) and "conformal" not in rules  # no evidence: no conformal
+    assert rules["tamp_first"]["order"] == list(ORDERS[0])
+    assert rules["rank"]["success"] == r["firp_success"] and rules["tamp_first"]["success"] == r["tamp_success"]
+    assert list(r["candidate_scores"].values()) == scores
+    summary = summarise(read_records(tmp_path / "r.jsonl"))
+    assert summary["firp_rule"] == ["rank"] and set(summary["rules"]) == {"threshold", "rank", "tamp_first"}
+    assert "## 3. Decision rules side by side" in markdown(summary) and "(this run)" in markdown(summary)
+
+
+def test_the_conformal_rule_accepts_above_the_validation_failures_quantile(tmp_path, sim_and_planner):
+    sim, planner = sim_and_planner
+    failures = [i / 100 for i in range(19)]  # 19 failures at 0.00 .. 0.18: at alpha 0.1 k = 18, q just above 0.17
+    scripted = EvidencedScorer([0.1, 0.175, 0.2, 0.9, 0.9, 0.9], threshold=0.6, evidence=_evidence(0.7, failures))
+    [r] = run_trials(RunConfig(trials=1, out=tmp_path / "r.jsonl", max_iterations=6, oracle=False, rule="conformal",
+                               alpha=0.1), sim, planner, scripted)
+    assert r["firp_rule"] == "conformal" and r["firp_order"] == list(ORDERS[1]) and r["firp_iterations"] == 2
+    assert 0.17 < r["threshold"] < 0.171 and r["service_threshold"] == 0.6 and r["run"]["alpha"] == 0.1
+    assert r["rules"]["conformal"]["order"] == list(ORDERS[1]) and r["rules"]["threshold"]["order"] == list(ORDERS[3])
+
+
+def test_the_conformal_rule_needs_the_bundles_failure_scores(tmp_path, sim_and_planner):
+    sim, planner = sim_and_planner
+    with pytest.raises(RunSetupError, match="firp certify"):
+        list(run_trials(RunConfig(trials=1, out=tmp_path / "r.jsonl", rule="conformal"), sim, planner,
+                        ScriptedScorer([0.9], threshold=0.5)))
+
+
+def test_an_uninformative_bundle_executes_tamps_first_plan_and_the_summary_says_so(tmp_path, sim_and_planner):
+    sim, planner = sim_and_planner
+    scripted = EvidencedScorer([0.1, 0.9, 0.9, 0.9, 0.9, 0.9], threshold=0.5, evidence=_evidence(0.45, [0.1, 0.2]))
+    out = tmp_path / "r.jsonl"
+    [r] = run_trials(RunConfig(trials=1, out=out, max_iterations=6, oracle=False), sim, planner, scripted)
+    assert (r["firp_rule"], r["firp_order"], r["firp_accepted"]) == ("tamp_first", list(ORDERS[0]), False)
+    assert r["firp_success"] == r["tamp_success"] and r["scores"] == [0.1]
+    assert r["rules"]["threshold"]["order"] == list(ORDERS[1])  # what replanning would have executed
+    assert r["run"]["model"]["evidence"]["informative"] is False
+    text = markdown(summarise(read_records(out)))
+    assert "not shown better than chance" in text and "executed TAMP's first plan" in text
+    # the override replans on the scores anyway, and says so
+    [again] = run_trials(RunConfig(trials=1, out=tmp_path / "o.jsonl", max_iterations=6, oracle=False,
+                                   replan_on_uninformative=True), sim, planner,
+                         EvidencedScorer([0.1, 0.9, 0.9, 0.9, 0.9, 0.9], threshold=0.5, evidence=_evidence(0.45, [0.1, 0.2])))
+    assert (again["firp_rule"], again["firp_order"]) == ("threshold", list(ORDERS[1]))
+    assert "replanned on its scores anyway" in markdown(summarise(read_records(tmp_path / "o.jsonl")))

@@ -135,6 +135,28 @@ def test_model_info_reports_the_manifest(client, tiny_bundle):
     assert len(c["joint_lower"]) == len(c["joint_upper"]) == 9
     assert info["image"]["size"] == 32 and info["image"]["backbone"] == "small_cnn"
     assert info["version"] == info["sha256"][:12]
+    # a bundle exported without decision evidence: nothing is known, and the service says so
+    assert info["informative"] is None and info["decision_evidence"] is None
+    assert client.get("/readyz").json()["informative"] is None
+
+
+@pytest.mark.parametrize("low", [0.45, 0.62])
+def test_the_bundles_decision_evidence_is_reported_in_model_info_readiness_and_metrics(tmp_path, low):
+    from firp.core.decisions import decision_evidence
+
+    labels = np.array([True] * 12 + [False] * 8)
+    evidence = {**decision_evidence(labels, np.where(labels, 0.8, 0.2), 0.5, resamples=200),
+                "interval": [low, low + 0.2]}  # the interval decides, whatever the point
+    path = export_tiny(tmp_path / "evidenced", evidence=evidence)
+    with ServiceClient(create_app(ServiceSettings(bundle=path, threads=1, **STRICT))) as c:
+        info = c.get("/v1/model").json()
+        ready = c.get("/readyz").json()
+        metrics = c.get("/metrics").text
+    informative = low > 0.5
+    assert info["informative"] is informative and ready["informative"] is informative
+    assert info["decision_evidence"]["interval"] == [low, low + 0.2]
+    assert info["decision_evidence"]["failure_scores"] == [0.2] * 8
+    assert f"firp_model_informative {1.0 if informative else 0.0}" in metrics
 
 
 def test_images_of_other_sizes_are_resized_like_training_frames(client, tiny_bundle):
