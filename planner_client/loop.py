@@ -267,11 +267,11 @@ def decision_for(config: RunConfig, model: dict) -> Decision:
     informative = is_informative(evidence)
     conformal = None
     if evidence.get("failure_scores"):
-        conformal = conformal_threshold(evidence["failure_scores"], config.alpha)
+        # too few failures to bound alpha gives inf: no score clears NEVER either, and JSON can hold it
+        conformal = min(conformal_threshold(evidence["failure_scores"], config.alpha), NEVER)
     elif config.rule == "conformal":
         raise RunSetupError(f"--rule conformal: the scoring service's bundle {model.get('name')!r} carries no "
                             "validation failure scores (decision_evidence); run `firp certify` on it first")
-        conformal = min(conformal, NEVER)  # too few failures to bound alpha: no score clears it
     rule = config.rule
     if informative is False and not config.replan_on_uninformative:
         rule = "tamp_first"

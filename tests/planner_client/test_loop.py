@@ -548,6 +548,16 @@ def test_the_conformal_rule_accepts_above_the_validation_failures_quantile(tmp_p
     assert r["rules"]["conformal"]["order"] == list(ORDERS[1]) and r["rules"]["threshold"]["order"] == list(ORDERS[3])
 
 
+def test_too_few_failures_for_alpha_accept_nothing_and_the_record_stays_json(tmp_path, sim_and_planner):
+    sim, planner = sim_and_planner
+    scripted = EvidencedScorer([0.99] * 6, threshold=0.5, evidence=_evidence(0.7, [0.1, 0.2, 0.3]))
+    out = tmp_path / "r.jsonl"
+    [r] = run_trials(RunConfig(trials=1, out=out, max_iterations=6, oracle=False, rule="conformal", alpha=0.1),
+                     sim, planner, scripted)
+    assert r["firp_accepted"] is False and r["firp_iterations"] == 6 and 1.0 < r["threshold"] < 1.0 + 1e-12
+    json.loads(out.read_text().splitlines()[0], parse_constant=lambda c: pytest.fail(f"{c} in the record"))
+
+
 def test_the_conformal_rule_needs_the_bundles_failure_scores(tmp_path, sim_and_planner):
     sim, planner = sim_and_planner
     with pytest.raises(RunSetupError, match="firp certify"):
