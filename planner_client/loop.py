@@ -41,7 +41,7 @@ from typing import Any, Hashable, Iterator, Protocol, Sequence
 
 import numpy as np
 
-from firp.core.decisions import (DECISION_RULES, chosen_by_rule, conformal_threshold, first_accepted, highest,
+from firp.core.decisions import (DECISION_RULES, chosen_by_rule, conformal_threshold, first_accepted,
                                  is_informative)
 from planner_client.backend import SimBackend, SimOutcome
 from planner_client.ik import IKFailure
@@ -214,6 +214,15 @@ class TrialWork:
             self.timing["plan_s"] += time.perf_counter() - started
         return self.plans[candidate]
 
+    def score(self, scorer: Scorer, candidate: Hashable) -> dict:
+        """The scoring service's answer for ``candidate``'s plan (which must exist), timed and kept in
+        :attr:`scores` (a score kept before stays: the service is deterministic)."""
+        started = time.perf_counter()
+        answer = scorer.score(self.episode.image_b64, self.plans[candidate], self.episode.task)
+        self.timing["score_s"] += time.perf_counter() - started
+        self.scores.setdefault(candidate, float(answer["score"]))
+        return answer
+
     def execute(self, candidate: Hashable) -> SimOutcome:
         """The outcome of ``candidate``'s plan; executed once -- the simulator is deterministic from the
         episode's initial state, so a second execution would give the same label."""
@@ -256,7 +265,6 @@ class Decision:
     rule: str  # the rule whose pick TAMP + FIRP executes; "tamp_first" when the bundle is uninformative
     threshold: float | None  # the run's threshold (None: the service's, read from each answer)
     conformal: float | None  # the conformal threshold at alpha (None: the bundle carries no evidence)
-    informative: bool | None  # the bundle's evidence (None: it carries none)
 
 
 def decision_for(config: RunConfig, model: dict) -> Decision:
@@ -264,7 +272,6 @@ def decision_for(config: RunConfig, model: dict) -> Decision:
     if config.rule not in DECISION_RULES:
         raise RunSetupError(f"--rule {config.rule}: one of {', '.join(DECISION_RULES)}")
     evidence = model.get("decision_evidence") or {}
-    informative = is_informative(evidence)
     conformal = None
     if evidence.get("failure_scores"):
         # too few failures to bound alpha gives inf: no score clears NEVER either, and JSON can hold it
@@ -273,9 +280,9 @@ def decision_for(config: RunConfig, model: dict) -> Decision:
         raise RunSetupError(f"--rule conformal: the scoring service's bundle {model.get('name')!r} carries no "
                             "validation failure scores (decision_evidence); run `firp certify` on it first")
     rule = config.rule
-    if informative is False and not config.replan_on_uninformative:
+    if is_informative(evidence) is False and not config.replan_on_uninformative:
         rule = "tamp_first"
-    return Decision(rule, config.threshold, conformal, informative)
+    return Decision(rule, config.threshold, conformal)
 
 
 def score_every_candidate(work: TrialWork, scorer: Scorer, orders: list[Hashable]) -> tuple[list[Hashable], dict]:
@@ -315,35 +322,33 @@ def rules_side_by_side(work: TrialWork, scorer: Scorer, orders: list[Hashable], 
                                                  for c in plannable}}
 
 
+def executed_part(work: TrialWork, candidate: Hashable, accepted: bool, scores: list[float], threshold: float,
+                  service_threshold: float) -> dict:
+    """The FIRP part of the record: ``candidate``'s plan executed, with the scores the rule looked at."""
+    outcome = work.execute(candidate)
+    return {"firp_success": bool(outcome.success), "firp_reason": outcome.reason, "firp_accepted": bool(accepted),
+            "firp_iterations": len(scores), "firp_order": work.planner.describe(candidate), "scores": scores,
+            "threshold": threshold, "service_threshold": service_threshold}
+
+
 def rank_all(work: TrialWork, scorer: Scorer, orders: list[Hashable], threshold: float | None) -> dict:
     """The ranking rule: plan every candidate, score them in one call, execute the highest-scored."""
     plannable, answer = score_every_candidate(work, scorer, orders)
     scores = [work.scores[c] for c in plannable]
     used_threshold = float(answer["threshold"]) if threshold is None else threshold
-    index = highest(scores)
-    outcome = work.execute(plannable[index])
-    return {"firp_success": bool(outcome.success), "firp_reason": outcome.reason,
-            "firp_accepted": scores[index] >= used_threshold, "firp_iterations": len(scores),
-            "firp_order": work.planner.describe(plannable[index]), "scores": scores, "threshold": used_threshold,
-            "service_threshold": float(answer["threshold"])}
+    index, accepted = chosen_by_rule("rank", scores, used_threshold)
+    return executed_part(work, plannable[index], accepted, scores, used_threshold, float(answer["threshold"]))
 
 
 def tamp_first(work: TrialWork, scorer: Scorer, orders: list[Hashable]) -> dict:
     """An uninformative bundle: its score of TAMP's first plan is recorded, the plan executed regardless
     (``firp_accepted`` says whether the score reached the threshold, as for the ranking's pick)."""
-    plan = work.plan(orders[0])
-    if plan is None:
+    if work.plan(orders[0]) is None:
         raise IKFailure(f"seed {work.episode.seed}: the planner cannot plan its first candidate "
                         f"({work.unplannable[orders[0]]})")
-    started = time.perf_counter()
-    answer = scorer.score(work.episode.image_b64, plan, work.episode.task)
-    work.timing["score_s"] += time.perf_counter() - started
-    work.scores[orders[0]] = float(answer["score"])
-    outcome = work.execute(orders[0])
-    accepted = work.scores[orders[0]] >= float(answer["threshold"])  # what the score says of the executed plan
-    return {"firp_success": bool(outcome.success), "firp_reason": outcome.reason, "firp_accepted": accepted,
-            "firp_iterations": 1, "firp_order": work.planner.describe(orders[0]), "scores": [work.scores[orders[0]]],
-            "threshold": float(answer["threshold"]), "service_threshold": float(answer["threshold"])}
+    answer = work.score(scorer, orders[0])
+    score, threshold = work.scores[orders[0]], float(answer["threshold"])
+    return executed_part(work, orders[0], score >= threshold, [score], threshold, threshold)
 
 
 def decide(work: TrialWork, scorer: Scorer, orders: list[Hashable], decision: Decision) -> dict:
@@ -367,25 +372,19 @@ def replan_until_accepted(work: TrialWork, scorer: Scorer, orders: list[Hashable
     used_threshold = float("nan")
     order = orders[0]  # the last candidate scored
     for candidate in orders:
-        plan = work.plan(candidate)
-        if plan is None:  # nothing to score: the next candidate
+        if work.plan(candidate) is None:  # nothing to score: the next candidate
             continue
         order = candidate
-        started = time.perf_counter()
-        answer = scorer.score(work.episode.image_b64, plan, work.episode.task)
-        work.timing["score_s"] += time.perf_counter() - started
+        answer = work.score(scorer, candidate)
         used_threshold = float(answer["threshold"]) if threshold is None else threshold
         scores.append(float(answer["score"]))
-        work.scores.setdefault(candidate, scores[-1])
         if accepts(scores[-1], used_threshold):
             accepted = True
             break
     if not scores:
         raise IKFailure(f"seed {work.episode.seed}: the planner could plan none of its {len(orders)} candidates")
-    outcome = work.execute(order)  # the accepted plan, or the last one when the budget ran out
-    return {"firp_success": bool(outcome.success), "firp_reason": outcome.reason, "firp_accepted": accepted,
-            "firp_iterations": len(scores), "firp_order": work.planner.describe(order), "scores": scores,
-            "threshold": used_threshold, "service_threshold": float(answer["threshold"])}
+    # the accepted plan, or the last one when the budget ran out
+    return executed_part(work, order, accepted, scores, used_threshold, float(answer["threshold"]))
 
 
 def oracle_line(work: TrialWork, orders: list[Hashable]) -> dict:
@@ -399,10 +398,11 @@ def oracle_line(work: TrialWork, orders: list[Hashable]) -> dict:
 def run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: Planner, scorer: Scorer | None,
               identity: dict, recorder: ExecutionRecorder | None = None, decision: Decision | None = None) -> dict:
     """One trial's record (see the module docstring for what is run). Every call of the trial to the sim
-    worker and the scoring service carries the trial's ``X-Request-ID``, which the record keeps."""
+    worker and the scoring service carries the trial's ``X-Request-ID``, which the record keeps.
+    ``decision`` (:func:`decision_for`, made once per run) is needed when there is a scorer."""
+    if scorer is not None and decision is None:
+        raise ValueError("a trial with a scorer needs the run's decision (decision_for)")
     with request_id(f"trial-{trial}-{uuid.uuid4().hex[:12]}") as rid:
-        if scorer is not None and decision is None:
-            decision = decision_for(config, scorer.model())
         record = _run_trial(trial, config, sim, planner, scorer, identity, recorder, decision)
     return {**record, "request_id": rid}
 
@@ -417,8 +417,7 @@ def _run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: Pla
                      model=identity.get("model"))
     work.timing["start_s"] = time.perf_counter() - started
     record: dict = {"trial": trial, "seed": seed, "task": config.task, "run": identity}
-    if scorer is not None:
-        assert decision is not None
+    if scorer is not None and decision is not None:
         record.update(decide(work, scorer, orders, decision))
         if config.compare_rules:
             record.update(rules_side_by_side(work, scorer, orders, decision, record["service_threshold"]))

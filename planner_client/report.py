@@ -177,11 +177,11 @@ def markdown(summary: dict) -> str:
     if acc is None:
         lines.append("FIRP did not run (--no-score).")
     else:
-        if summary.get("firp_rule") == ["tamp_first"]:
-            sentence = (f"TAMP's first plan, executed in every trial, scored at or above the threshold in "
-                        f"{acc['accepted']} of {acc['of']} trials.")
-        elif summary.get("firp_rule") == ["rank"]:
-            sentence = (f"The highest-scored plan, executed in every trial, scored at or above the threshold in "
+        # rules that execute their pick whatever its score: "accepted" says the score reached the threshold
+        always = {"tamp_first": "TAMP's first plan", "rank": "The highest-scored plan"}
+        rule = summary.get("firp_rule", [])
+        if len(rule) == 1 and rule[0] in always:
+            sentence = (f"{always[rule[0]]}, executed in every trial, scored at or above the threshold in "
                         f"{acc['accepted']} of {acc['of']} trials.")
         else:
             others = ("" if acc["accepted"] == acc["of"] else

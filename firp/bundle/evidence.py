@@ -12,14 +12,13 @@ rewritten (atomically); the weights and their hashes stay, so the bundle's versi
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from firp.bundle.export import write_manifest
 from firp.bundle.load import load_bundle
 from firp.bundle.types import BundleError
 from firp.core.bundle_format import MANIFEST_NAME
@@ -86,24 +85,9 @@ def certify_bundle(bundle_dir: str | os.PathLike, dataset: str | os.PathLike, *,
         raise ValueError(f"the ensemble's balanced accuracy at the threshold on these episodes is "
                          f"{evidence['balanced_accuracy']:.4f}, the manifest says {recorded:.4f}: these are not the "
                          "episodes the bundle was validated on")
-    _write_manifest(bundle.path, {**manifest, EVIDENCE_KEY: evidence})
+    write_manifest(bundle.path / MANIFEST_NAME, {**manifest, EVIDENCE_KEY: evidence})
     load_bundle(bundle.path)  # the rewritten bundle still verifies
     return evidence
-
-
-def _write_manifest(root: Path, manifest: dict) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=".manifest-", suffix=".json", dir=root)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(manifest, f, indent=2, allow_nan=False)
-            f.write("\n")
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, root / MANIFEST_NAME)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def describe(evidence: dict) -> str:

@@ -43,6 +43,24 @@ def _json_metrics(name: str, metrics: Mapping[str, object]) -> dict[str, int | f
     return {str(k): _finite_number(f"{name}[{k!r}]", v) for k, v in metrics.items()}
 
 
+def write_manifest(path: Path, manifest: Mapping[str, Any]) -> None:
+    """``manifest.json`` as every bundle has it (indented JSON, no NaN), written beside ``path``, fsynced and
+    renamed over it: a reader sees the old manifest or the new one, never half of one."""
+    fd, tmp = tempfile.mkstemp(prefix=".manifest-", suffix=".json", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            json.dump(manifest, f, indent=2, allow_nan=False)
+            f.write("\n")
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)  # mkstemp makes it 0600; a bundle is meant to be read by a service user
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    _fsync_dir(path.parent)
+
+
 def _fsync_dir(path: Path) -> None:
     try:
         fd = os.open(path, os.O_RDONLY)
@@ -178,11 +196,7 @@ def export_bundle(
         }
         if evidence is not None:  # firp.core.decisions.decision_evidence: what decisions on the scores may rest on
             manifest[EVIDENCE_KEY] = dict(evidence)
-        with open(tmp / MANIFEST_NAME, "w", encoding="utf-8") as f:
-            json.dump(manifest, f, indent=2, allow_nan=False)
-            f.write("\n")
-            f.flush()
-            os.fsync(f.fileno())
+        write_manifest(tmp / MANIFEST_NAME, manifest)
         os.chmod(tmp, 0o755)  # mkdtemp makes it 0700; a bundle is meant to be read by a service user
         _fsync_dir(tmp)
         if out.exists():
