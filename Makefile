@@ -20,7 +20,7 @@ PYTEST_ARGS ?=
 # docker-compose (v1), which validates docker-compose.yml without a Docker engine (tests/test_compose.py).
 APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libosmesa6 docker-compose
 
-.PHONY: install robosuite-install system-deps test test-main test-robosuite run docs clean
+.PHONY: install robosuite-install system-deps test test-main test-robosuite run compose-smoke docs clean
 
 install: $(PIP_STAMP)
 
@@ -65,10 +65,15 @@ test-robosuite: robosuite-install
 run: install
 	MUJOCO_GL=$(MUJOCO_GL) $(VENV)/bin/firp run --trials $(TRIALS)
 
+# docker-compose.yml for real: build the three images, run the main job's first trials in containers
+# and compare their scores with the same trials run without them (podman here, Docker where one runs).
+compose-smoke: install
+	bash scripts/compose_smoke.sh
+
 # The documentation site (MkDocs, offline): docs/*.md -> site/; --strict fails on a broken link.
 docs: install
 	$(VENV)/bin/mkdocs build --strict --site-dir site
 
 clean:
-	rm -rf $(VENV) $(RS_VENV) .make .pytest_cache *.egg-info site
+	rm -rf $(VENV) $(RS_VENV) .make .pytest_cache *.egg-info site .compose-smoke
 	find . -path ./.git -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +

@@ -2,32 +2,40 @@
 # the scoring service over HTTP; MuJoCo is here for the planner's IK on the robot model (and the
 # embedded simulator when no --sim URL is given). Build from the repository root:
 #   docker compose build planner
-FROM python:3.11-slim
+# Build arguments (compose passes them from FIRP_* variables, see docker-compose.yml):
+#   BASE_IMAGE       any Debian-like image with python3 (3.11) and its venv module; default python:3.11-slim
+#   PIP_NO_INDEX=1   install from docker/wheels only (an offline build, docker/wheels/README.md)
+ARG BASE_IMAGE=python:3.11-slim
 
-ENV PYTHONDONTWRITEBYTECODE=1 \
-    PYTHONUNBUFFERED=1 \
-    PIP_NO_CACHE_DIR=1 \
-    PIP_DISABLE_PIP_VERSION_CHECK=1 \
-    MUJOCO_GL=egl
-
-RUN apt-get update \
- && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends \
-        libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libosmesa6 \
- && rm -rf /var/lib/apt/lists/*
-
-RUN useradd --create-home --uid 10001 --user-group firp
+# --- build: a virtualenv with the planner's dependencies (the wheels stay in this stage) ---
+FROM ${BASE_IMAGE} AS build
+ARG PIP_NO_INDEX
+ARG PIP_FIND_LINKS=/wheels
+ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 PATH=/opt/venv/bin:$PATH
+RUN python3 -m venv /opt/venv
 WORKDIR /app
-
+COPY docker/wheels /wheels
 COPY pyproject.toml ./
 COPY firp ./firp
 COPY firp_cli ./firp_cli
 COPY world_api ./world_api
 COPY sim_worker ./sim_worker
 COPY planner_client ./planner_client
+RUN pip install -e ".[planner]"
 
-RUN pip install -e ".[planner]" \
- && mkdir -p /app/runs && chown firp:firp /app/runs
-
+# --- runtime: the GL libraries MuJoCo's renderer loads by name (the Makefile's APT list) ---
+FROM ${BASE_IMAGE}
+ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PATH=/opt/venv/bin:$PATH MUJOCO_GL=egl
+RUN apt-get update \
+ && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends \
+        libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libosmesa6 \
+ && rm -rf /var/lib/apt/lists/*
+RUN useradd --create-home --uid 10001 --user-group firp
+COPY --from=build /opt/venv /opt/venv
+COPY --from=build /app /app
+# Trial records land in /app/runs (compose mounts the volume planner-runs there).
+RUN mkdir -p /app/runs && chown firp:firp /app/runs
+WORKDIR /app
 USER firp
 ENTRYPOINT ["firp"]
 CMD ["run", "--trials", "50"]

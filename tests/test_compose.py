@@ -8,6 +8,7 @@ planner behind a profile, torch only in the service image, and install steps the
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import subprocess
@@ -46,11 +47,45 @@ def test_docker_compose_config_accepts_the_file():
     assert out.returncode == 0, out.stderr
 
 
+def _build_args(name: str) -> dict[str, str | None]:
+    """The Dockerfile's ARGs (before or after its first FROM) with their defaults."""
+    return {m.group(1): m.group(2) for m in re.finditer(r"^ARG (\w+)(?:=(\S+))?$", _dockerfile(name), re.M)}
+
+
 def test_services_build_from_the_dockerfiles(compose):
     assert set(compose["services"]) == set(DOCKERFILES)
     for name, service in compose["services"].items():
-        assert service["build"] == {"context": ".", "dockerfile": DOCKERFILES[name]}
+        build = service["build"]
+        assert (build["context"], build["dockerfile"]) == (".", DOCKERFILES[name])
         assert (ROOT / DOCKERFILES[name]).is_file()
+        # every build argument compose passes is one the Dockerfile declares, each from a FIRP_* variable
+        assert set(build["args"]) <= set(_build_args(name)), (name, set(build["args"]) - set(_build_args(name)))
+        assert {"BASE_IMAGE", "PIP_NO_INDEX"} <= set(build["args"])
+        assert all(str(v).startswith("${FIRP_") for v in build["args"].values())
+        assert service["image"] == f"firp-{name.replace('_', '-')}:${{FIRP_IMAGE_TAG:-latest}}"
+
+
+@pytest.mark.parametrize("name", list(DOCKERFILES))
+def test_wheels_and_build_tools_stay_in_the_build_stage(name):
+    """Two stages: docker/wheels and pip's work in the first; the runtime copies only the venv and /app."""
+    text = _dockerfile(name)
+    stages = re.split(r"^FROM ", text, flags=re.M)[1:]
+    assert len(stages) == 2 and stages[0].startswith("${BASE_IMAGE} AS build") and stages[1].startswith("${BASE_IMAGE}\n")
+    assert "COPY docker/wheels /wheels" in stages[0] and "/wheels" not in stages[1]
+    assert "pip install" not in stages[1]
+    assert _build_args(name).get("PIP_FIND_LINKS") == "/wheels"
+    assert (ROOT / "docker/wheels/README.md").is_file()  # the folder exists in a fresh clone, so COPY works
+
+
+def test_health_checks_are_in_the_images_too(compose):
+    """`docker run` without compose gets the same /readyz probe as docker-compose.yml's."""
+    for name in ("service", "sim_worker", "robosuite_worker"):
+        joined = re.sub(r"\\\n\s*", " ", _dockerfile(name))
+        check = next((line for line in joined.splitlines() if line.startswith("HEALTHCHECK ")), "")
+        assert "/readyz" in check and PORT_VARIABLE[name] in check and "--start-period=120s" in check, name
+        # exec form, no argument with a space: podman's Docker API splits a CMD's arguments at spaces
+        command = json.loads(check.split(" CMD ", 1)[1])
+        assert command[:3] == ["python", "-m", "firp.core.probe"] and not any(" " in arg for arg in command)
 
 
 PORT_VARIABLE = {"service": "FIRP_SERVICE_PORT", "sim_worker": "FIRP_SIM_PORT", "robosuite_worker": "FIRP_ROBOSUITE_PORT"}
@@ -64,9 +99,7 @@ def _port(compose: dict, name: str) -> str:
 def test_servers_are_healthy_only_when_ready(compose, name):
     service = compose["services"][name]
     port = _port(compose, name)
-    test = " ".join(service["healthcheck"]["test"])
-    assert service["healthcheck"]["test"][0] == "CMD"
-    assert f"http://127.0.0.1:{port}/readyz" in test
+    assert service["healthcheck"]["test"] == ["CMD", "python", "-m", "firp.core.probe", f"http://127.0.0.1:{port}/readyz"]
     assert "start_period" in service["healthcheck"]
     assert ("profiles" in service) == (name == "robosuite_worker")  # robosuite's world only when asked for
 
@@ -112,7 +145,8 @@ def test_servers_start_as_the_firp_command_configured_by_the_environment(compose
 @pytest.mark.parametrize("name", list(DOCKERFILES))
 def test_images_are_slim_and_run_as_a_non_root_user(compose, name):
     text = _dockerfile(name)
-    assert re.search(r"^FROM python:3\.11-slim\b", text, re.M)
+    assert _build_args(name)["BASE_IMAGE"] == "python:3.11-slim"  # the default; a local Debian base here
+    assert re.search(r"^FROM \$\{BASE_IMAGE\}$", text, re.M)
     users = re.findall(r"^USER (\S+)", text, re.M)
     assert users and users[-1] not in ("root", "0", "0:0")
     user = str(compose["services"][name].get("user", users[-1]))
@@ -129,7 +163,8 @@ def test_images_install_like_the_readme(name, extra):
     assert ("torch" in steps) == (name == "service")  # torch only where it is used
     if name == "service":
         cpu_torch = "pip install --index-url https://download.pytorch.org/whl/cpu torch==2.13.0"
-        assert cpu_torch in steps and cpu_torch in readme
+        index = _build_args(name)["TORCH_INDEX_URL"]
+        assert steps.replace('"$TORCH_INDEX_URL"', index).count(cpu_torch) == 1 and cpu_torch in readme
 
 
 @pytest.mark.parametrize("name", ["sim_worker", "robosuite_worker", "planner"])
