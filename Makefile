@@ -16,9 +16,10 @@ export MUJOCO_GL
 TRIALS ?= 50
 PYTEST_ARGS ?=
 
-# EGL/OSMesa runtime libraries MuJoCo's renderer loads by name (libEGL.so.1, libOSMesa.so.*), and
-# docker-compose (v1), which validates docker-compose.yml without a Docker engine (tests/test_compose.py).
-APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libosmesa6 docker-compose
+# EGL/OSMesa runtime libraries MuJoCo's renderer loads by name (libEGL.so.1, libOSMesa.so.*),
+# docker-compose (v1), which validates docker-compose.yml without a Docker engine (tests/test_compose.py),
+# and PostgreSQL's server, which the tests start for Optuna studies shared by several workers.
+APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libosmesa6 docker-compose postgresql
 
 .PHONY: install robosuite-install system-deps test test-main test-robosuite run compose-smoke docs clean
 

@@ -9,6 +9,7 @@ and records its progress, so an interrupted run resumes where it stopped.
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
@@ -55,31 +56,42 @@ def cached_features(dataset_path: str | os.PathLike, cfg: EncoderConfig, cache_d
         final = cache_dir / f"{key}.npy"
         if final.exists():
             return np.load(final, mmap_mode="r", allow_pickle=False)
-        names = ds.demo_names
-        t_len = ds.frames(names[0]).shape[0]
-        encoder = ImageEncoder(cfg).eval()
-        partial = cache_dir / f"{key}.partial.npy"
-        progress_file = cache_dir / f"{key}.progress.json"
-        done = 0
-        if partial.exists() and progress_file.exists():
-            done = int(json.loads(progress_file.read_text())["done"])
-            out = np.load(partial, mmap_mode="r+", allow_pickle=False)
-        else:
-            out = np.lib.format.open_memmap(partial, mode="w+", dtype=np.float16,
-                                            shape=(len(names), t_len, encoder.backbone_dim))
-        bar = tqdm(total=len(names), initial=done, desc=f"features {cfg.backbone}@{cfg.image_size}", unit="ep",
-                   disable=not progress)
-        with torch.inference_mode():
-            for i in range(done, len(names)):
-                frames = ds.frames(names[i])  # (T, H, W, 3) uint8
-                feats = encoder.backbone_features(torch.from_numpy(frames), chunk_size=batch_frames)
-                out[i] = feats.float().numpy().astype(np.float16)
-                if (i + 1) % 16 == 0 or i + 1 == len(names):
-                    out.flush()
-                    progress_file.write_text(json.dumps({"done": i + 1, "config": asdict(cfg)}))
-                bar.update(1)
-        bar.close()
-        del out
-        os.replace(partial, final)
-        progress_file.unlink(missing_ok=True)
+        # One writer per cache: several tuning workers on one machine start together; the others wait
+        # here and then read the finished cache instead of racing on the partial file.
+        with open(cache_dir / f"{key}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if not final.exists():
+                _compute_features(ds, cfg, cache_dir, key, final, batch_frames, progress)
     return np.load(final, mmap_mode="r", allow_pickle=False)
+
+
+def _compute_features(ds: EpisodeDataset, cfg: EncoderConfig, cache_dir: Path, key: str, final: Path,
+                      batch_frames: int, progress: bool) -> None:
+    """Fill ``final`` with the backbone's features of every frame, resuming a partial run."""
+    names = ds.demo_names
+    t_len = ds.frames(names[0]).shape[0]
+    encoder = ImageEncoder(cfg).eval()
+    partial = cache_dir / f"{key}.partial.npy"
+    progress_file = cache_dir / f"{key}.progress.json"
+    done = 0
+    if partial.exists() and progress_file.exists():
+        done = int(json.loads(progress_file.read_text())["done"])
+        out = np.load(partial, mmap_mode="r+", allow_pickle=False)
+    else:
+        out = np.lib.format.open_memmap(partial, mode="w+", dtype=np.float16,
+                                        shape=(len(names), t_len, encoder.backbone_dim))
+    bar = tqdm(total=len(names), initial=done, desc=f"features {cfg.backbone}@{cfg.image_size}", unit="ep",
+               disable=not progress)
+    with torch.inference_mode():
+        for i in range(done, len(names)):
+            frames = ds.frames(names[i])  # (T, H, W, 3) uint8
+            feats = encoder.backbone_features(torch.from_numpy(frames), chunk_size=batch_frames)
+            out[i] = feats.float().numpy().astype(np.float16)
+            if (i + 1) % 16 == 0 or i + 1 == len(names):
+                out.flush()
+                progress_file.write_text(json.dumps({"done": i + 1, "config": asdict(cfg)}))
+            bar.update(1)
+    bar.close()
+    del out
+    os.replace(partial, final)
+    progress_file.unlink(missing_ok=True)

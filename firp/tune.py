@@ -4,21 +4,27 @@ Search space: the paper's Table (learning rate, gradient clipping, lambda, alpha
 E_start^f, E_stop^e) with two adaptations, recorded in each study's user attributes:
 the learning rates include 3e-4 and 1e-3 (our RSSM is small and trains for tens of epochs, not
 300 with a ResNet50), and the epoch parameters are the paper's fractions of its 300 epochs
-applied to ``--epochs``. Storage is persistent (SQLite file by default, any SQLAlchemy URL for
-several machines) and studies resume: finished trials are kept, and a trial's own training
-resumes from its checkpoint. Every trial trains on the same train/validation split.
+applied to ``--epochs``. Storage is persistent (SQLite file by default; PostgreSQL for several
+processes and machines on one study) and studies resume: finished trials are kept, and a trial
+whose worker died is retried under its own seed, its training resuming from its checkpoint when
+the retrying worker sees it. Every trial trains on the same train/validation split.
 
     python -m firp.tune --data data/stacking.h5 --trials 20
+    python -m firp.tune --data data/stacking.h5 --trials 40 --storage postgresql://user@db/firp   # on each worker
     python -m firp.tune --data data/stacking.h5 --export models/stacking
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import json
+import os
+import socket
+import sys
 import time
+import warnings
 from dataclasses import replace
+from datetime import datetime
 from pathlib import Path
 
 import numpy as np
@@ -87,14 +93,97 @@ def tuning_split(labels: np.ndarray, seed: int = SPLIT_SEED) -> tuple[np.ndarray
     return stratified_split(np.asarray(labels), VALID_FRACTION, seed=seed)
 
 
+#: Liveness of a trial's worker, kept in the storage: a RUNNING trial whose heartbeat is older than
+#: the grace period is failed by the next worker that starts a trial, and retried (at most MAX_RETRY
+#: times) under its original number's seed and checkpoint directory.
+HEARTBEAT_S = 30
+GRACE_S = 120
+MAX_RETRY = 2
+SCHEMA_ATTEMPTS = 5
+
+
+def open_storage(url: str) -> optuna.storages.RDBStorage:
+    """Optuna's RDB storage at ``url`` with heartbeats and retries of trials whose worker died.
+
+    ``postgresql://`` (or ``postgres://``) is served by psycopg 3 (``postgresql+psycopg://``), the
+    driver the ``train`` extra installs; any other SQLAlchemy URL is passed on as it is."""
+    scheme, sep, rest = url.partition("://")
+    if sep and scheme in ("postgresql", "postgres"):
+        try:
+            import psycopg  # noqa: F401
+        except ImportError as error:
+            raise SystemExit(f"--storage {url}: PostgreSQL needs psycopg (pip install -e \".[train]\")") from error
+        url = f"postgresql+psycopg://{rest}"
+    import sqlalchemy.exc
+
+    with warnings.catch_warnings():  # heartbeats are "experimental" in Optuna since 2.8; we rely on them
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        retry = optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry=MAX_RETRY)
+        for attempt in range(SCHEMA_ATTEMPTS):
+            try:
+                return optuna.storages.RDBStorage(url, heartbeat_interval=HEARTBEAT_S, grace_period=GRACE_S,
+                                                  heartbeat_stale_trial_callback=retry)
+            except (sqlalchemy.exc.IntegrityError, sqlalchemy.exc.ProgrammingError):
+                # workers started together on an empty database race to create Optuna's tables (one
+                # gets "already exists"): the next attempt finds them made
+                if attempt == SCHEMA_ATTEMPTS - 1:
+                    raise
+                time.sleep(0.5 * (attempt + 1))
+    raise AssertionError("unreachable")
+
+
+def _worker_id() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def _died_here(trial: optuna.trial.FrozenTrial) -> bool:
+    """The RUNNING trial's worker ran on this host and its process is gone. Such a trial is retried at
+    once; one of another host waits for its heartbeat to go stale. A trial without a worker id was
+    just created by a worker that has not recorded itself yet, or predates worker ids: dead only once
+    it is older than the heartbeat's grace period."""
+    worker = trial.user_attrs.get("worker")
+    if worker is None:
+        started = trial.datetime_start
+        return started is not None and (datetime.now() - started).total_seconds() > GRACE_S
+    host, _, pid = worker.rpartition(":")
+    if host != socket.gethostname() or not pid.isdigit():
+        return False
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        return False
+    return False
+
+
+def _origin(trial: optuna.trial.FrozenTrial) -> int:
+    """The number of the trial a retry repeats (its seed and checkpoint directory), else its own: a
+    retry of a dead local worker's trial says so in ``retry_of``, Optuna's retry of a stale one in its
+    system attributes."""
+    if "retry_of" in trial.user_attrs:
+        return int(trial.user_attrs["retry_of"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        retried = optuna.storages.RetryHeartbeatStaleTrialCallback.retried_trial_number(trial)
+    return trial.number if retried is None else retried
+
+
 def run_study(data: SequenceData, base: TrainConfig, storage: str, study_name: str, trials: int, run_dir: Path,
               progress: bool = True, space: str = "paper", recipe: dict | None = None) -> optuna.Study:
-    """Run trials until the study holds ``trials`` finished ones (a resumed study counts its old ones).
+    """Run trials until the study holds ``trials`` finished ones (a resumed study counts its old ones),
+    together with every other worker on the same study: each stops once the study has ``trials``.
 
     ``recipe`` (``{"preset": name, "overrides": {...}}``) is kept with the study, so that the bundle it
-    exports can say what it was made from."""
-    study = optuna.create_study(study_name=study_name, storage=storage, direction="maximize", load_if_exists=True,
-                                sampler=optuna.samplers.TPESampler(seed=0))
+    exports can say what it was made from. On a SQLite file (one machine, usually one worker) the
+    sampler is seeded, so a study repeats; on a shared database each worker samples from its own seed,
+    with running trials counted as if they had scored (constant liar), so two workers starting together
+    do not propose the same trials."""
+    shared = not storage.startswith("sqlite")
+    sampler = (optuna.samplers.TPESampler(seed=None, constant_liar=True) if shared
+               else optuna.samplers.TPESampler(seed=0))
+    study = optuna.create_study(study_name=study_name, storage=open_storage(storage), direction="maximize",
+                                load_if_exists=True, sampler=sampler)
     study.set_user_attr("dataset_hash", data.dataset_hash)
     if recipe is not None:
         study.set_user_attr("recipe", recipe)
@@ -105,23 +194,31 @@ def run_study(data: SequenceData, base: TrainConfig, storage: str, study_name: s
     train, valid = data.subset(train_idx), data.subset(valid_idx)
 
     def objective(trial: optuna.Trial) -> float:
-        cfg = suggest_config(trial, base, space)
-        ckpt = run_dir / f"trial_{trial.number:04d}"
-        trial.set_user_attr("checkpoint", str(ckpt))
+        trial.set_user_attr("worker", _worker_id())  # first: who runs it, for a crash's retry
+        frozen = next(t for t in trial.study.get_trials(deepcopy=False) if t.number == trial.number)
+        origin = _origin(frozen)  # a retry trains as the trial it repeats: same seed, same checkpoints
+        cfg = replace(suggest_config(trial, base, space), seed=origin)
+        ckpt = run_dir / f"trial_{origin:04d}"
+        trial.set_user_attr("checkpoint", str(ckpt.resolve()))  # absolute: any worker's export finds it
         trial.set_user_attr("config", cfg.to_dict())
         result = train_model(cfg, train, valid, checkpoint_dir=ckpt, progress=progress)
         trial.set_user_attr("best_epoch", result.best_epoch)
         trial.set_user_attr("train_seconds", round(result.seconds, 1))
         return result.best_val_balanced_accuracy
 
-    done = len([t for t in study.trials if t.state == optuna.trial.TrialState.COMPLETE])
-    # trials left RUNNING by a crash are retried from their checkpoints by enqueueing their params
+    # a trial left RUNNING by a crash of a worker on this host is retried now (another host's: once its
+    # heartbeat is stale, by whichever worker starts a trial next)
     for t in study.trials:
-        if t.state == optuna.trial.TrialState.RUNNING:
-            study.tell(t.number, state=optuna.trial.TrialState.FAIL)
-            study.enqueue_trial(t.params)
+        if t.state == optuna.trial.TrialState.RUNNING and _died_here(t):
+            try:
+                study.tell(t.number, state=optuna.trial.TrialState.FAIL)
+            except (ValueError, optuna.exceptions.UpdateFinishedTrialError):
+                continue  # another worker starting now failed it first, and retries it
+            study.enqueue_trial(t.params, user_attrs={"retry_of": _origin(t)})
+    done = len(study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,)))
     if trials > done:
-        study.optimize(objective, n_trials=trials - done)
+        stop_at_total = optuna.study.MaxTrialsCallback(trials, states=(optuna.trial.TrialState.COMPLETE,))
+        study.optimize(objective, n_trials=trials - done, callbacks=[stop_at_total])
     return study
 
 
@@ -199,7 +296,9 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_training_flags(parser)
     parser.add_argument("--trials", type=int_in_range("--trials", 0, 10_000), default=20)
-    parser.add_argument("--storage", default=None, help="Optuna storage URL (default: sqlite:///runs/tune-<data>.db)")
+    parser.add_argument("--storage", default=None,
+                        help="Optuna storage URL (default: sqlite:///runs/tune-<data>.db); postgresql://user@host/db "
+                             "lets several workers, on one machine or many, share the study")
     parser.add_argument("--study", default=None, help="study name (default: firp-<data stem>)")
     parser.add_argument("--export", type=Path, default=None, help="write the top-five bundle to this directory")
     parser.add_argument("--task", default=None, help="task name for the bundle (default: the dataset's)")
