@@ -12,6 +12,13 @@ FROM ${BASE_IMAGE} AS build
 ARG PIP_NO_INDEX
 ARG PIP_FIND_LINKS=/wheels
 ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 PATH=/opt/venv/bin:$PATH
+# robosuite pulls pynput -> evdev, published as source only: its build needs a C compiler, the kernel's
+# input headers and Python's (python3-dev where the base lacks Python.h). Build stage only.
+RUN apt-get update \
+ && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends gcc libc6-dev linux-libc-dev \
+ && if ! python3 -c "import os, sys, sysconfig; sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()['include'], 'Python.h')))"; then \
+        DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends python3-dev; fi \
+ && rm -rf /var/lib/apt/lists/*
 RUN python3 -m venv /opt/venv
 WORKDIR /app
 COPY docker/wheels /wheels
@@ -23,12 +30,13 @@ COPY world_api ./world_api
 COPY robosuite_worker ./robosuite_worker
 RUN pip install -e ".[robosuite]"
 
-# --- runtime: the GL libraries MuJoCo's renderer loads by name (the Makefile's APT list) ---
+# --- runtime: the GL libraries MuJoCo's renderer loads by name (the Makefile's APT list), libGL itself
+# and GLib, which robosuite's imports load even when rendering through EGL (PyOpenGL, OpenCV) ---
 FROM ${BASE_IMAGE}
 ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PATH=/opt/venv/bin:$PATH MUJOCO_GL=egl PYOPENGL_PLATFORM=egl
 RUN apt-get update \
  && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends \
-        libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libosmesa6 \
+        libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libosmesa6 libgl1 libglib2.0-0 \
  && rm -rf /var/lib/apt/lists/*
 RUN useradd --create-home --uid 10001 --user-group firp
 COPY --from=build /opt/venv /opt/venv

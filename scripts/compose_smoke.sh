@@ -68,7 +68,13 @@ teardown() {
             echo "compose smoke: teardown: compose down failed (see $LOGS/down.log)" >&2
     fi
     [ -n "$HEALTH_PID" ] && kill "$HEALTH_PID" 2>/dev/null || true
-    if [ -n "$PODMAN_PID" ]; then kill "$PODMAN_PID" 2>/dev/null || true; wait "$PODMAN_PID" 2>/dev/null || true; fi
+    if [ -n "$PODMAN_PID" ]; then
+        kill "$PODMAN_PID" 2>/dev/null || true; wait "$PODMAN_PID" 2>/dev/null || true
+        # podman bind-mounts its overlay folder onto itself and leaves it so; unmounted, `rm -rf
+        # .compose-smoke` (make clean) removes everything (the next run mounts it again)
+        if mountpoint -q "$WORK/storage/overlay" 2>/dev/null; then umount "$WORK/storage/overlay" 2>/dev/null || true; fi
+        PODMAN_PID=""
+    fi
 }
 COMPOSE=()
 trap on_exit EXIT

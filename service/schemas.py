@@ -26,6 +26,7 @@ __all__ = [
     "HealthResponse",
     "ModelInfo",
     "DecisionEvidence",
+    "EvidenceDataset",
     "ModelRef",
     "PlanResult",
     "ReadyResponse",
@@ -203,6 +204,15 @@ class ReadyResponse(BaseModel):
                                      "clients should not replan on its scores; null: the bundle carries no evidence")
 
 
+class EvidenceDataset(BaseModel):
+    """The dataset a certification scored (``firp certify`` records it; its hash may differ from the training
+    data's when the same seeds were collected again)."""
+
+    path: str
+    sha256: str
+    is_training_data: bool = Field(description="the content hash equals the bundle's training data's (or the bundle names none)")
+
+
 class DecisionEvidence(BaseModel):
     """What decisions on the scores may rest on (firp.core.decisions; ``firp certify`` writes it)."""
 
@@ -216,6 +226,8 @@ class DecisionEvidence(BaseModel):
     n_failures: int
     failure_scores: list[float] = Field(description="the validation failures' scores, sorted: a client's conformal "
                                                     "threshold for a false-accept rate alpha comes from them")
+    dataset: EvidenceDataset | None = Field(None, description="the dataset `firp certify` measured it on (absent "
+                                                             "when the export measured it on its training data)")
 
 
 class MemberInfo(BaseModel):

@@ -145,8 +145,9 @@ def test_the_bundles_decision_evidence_is_reported_in_model_info_readiness_and_m
     from firp.core.decisions import decision_evidence
 
     labels = np.array([True] * 12 + [False] * 8)
+    dataset = {"path": "data/stacking.h5", "sha256": "ab" * 32, "is_training_data": False}  # as firp certify writes
     evidence = {**decision_evidence(labels, np.where(labels, 0.8, 0.2), 0.5, resamples=200),
-                "interval": [low, low + 0.2]}  # the interval decides, whatever the point
+                "interval": [low, low + 0.2], "dataset": dataset}  # the interval decides, whatever the point
     path = export_tiny(tmp_path / "evidenced", evidence=evidence)
     with ServiceClient(create_app(ServiceSettings(bundle=path, threads=1, **STRICT))) as c:
         info = c.get("/v1/model").json()
@@ -156,6 +157,7 @@ def test_the_bundles_decision_evidence_is_reported_in_model_info_readiness_and_m
     assert info["informative"] is informative and ready["informative"] is informative
     assert info["decision_evidence"]["interval"] == [low, low + 0.2]
     assert info["decision_evidence"]["failure_scores"] == [0.2] * 8
+    assert info["decision_evidence"]["dataset"] == dataset  # what the certification scored, not dropped
     assert f"firp_model_informative {1.0 if informative else 0.0}" in metrics
 
 
