@@ -67,6 +67,32 @@ def nut_failure_mode(final_blocks: dict, scene: dict, kind: str) -> str:
     return "in the air (still held, or resting on something)"
 
 
+def pick_place_misses(final_blocks: dict, scene: dict, kind: str) -> list[str]:
+    """Each object that did not end in its quadrant of the second bin, and where it is: still in the first
+    bin, in another quadrant, or off both bins (the same bounds as robosuite's ``not_in_bin``)."""
+    if kind == "unstable":
+        return ["unstable"]
+    bin2, size = np.asarray(scene["bin2"], dtype=float), np.asarray(scene["bin_size"], dtype=float)
+    bin1 = np.asarray(scene["bin1"], dtype=float)
+    misses = []
+    for name, final in final_blocks.items():
+        pos = np.asarray(final["position"], dtype=float)
+        target = np.asarray(scene["targets"][name][:2], dtype=float)
+        side = np.sign(target - bin2[:2])
+        low = np.minimum(bin2[:2], bin2[:2] + side * size / 2)
+        inside = bool(np.all(pos[:2] > low) and np.all(pos[:2] < low + size / 2)
+                      and bin2[2] < pos[2] < bin2[2] + 0.1)
+        if inside:
+            continue  # (robosuite's check also wants the hand away from it: the plans end with the hand above)
+        if np.all(np.abs(pos[:2] - bin1[:2]) < size / 2):
+            misses.append(f"{name} left in the first bin")
+        elif np.all(np.abs(pos[:2] - bin2[:2]) < size / 2):
+            misses.append(f"{name} in the second bin, outside its quadrant")
+        else:
+            misses.append(f"{name} off both bins")
+    return misses
+
+
 def _factors(task: str, attrs: dict) -> dict[str, str]:
     parts = attrs["choice"].split(":")
     if task == "nut_assembly":
@@ -77,11 +103,20 @@ def _factors(task: str, attrs: dict) -> dict[str, str]:
                 "grip point (m outwards of the handle's centre)": f"{grip:+.3f}",
                 "release": {"l:q0": "lowered, handle towards the robot", "d:q0": "dropped, handle towards the robot",
                             "d:q1": "dropped, handle to the side"}[f"{parts[2]}:{parts[3]}"]}
+    if task == "pick_place":
+        order, axes, heights = attrs["block_order"], attrs["grasp_axes"], parts[2]
+        out = {"order": "-".join(order), "first object": order[0]}
+        for k, name in enumerate(order):
+            out[f"{name}: grasp height"] = "high" if heights[k] == "h" else "centre"
+            out[f"{name}: pair of faces"] = str(axes[k])
+        return out
     return {"order": "-".join(attrs["block_order"]), "grasp axes": "".join(map(str, attrs["grasp_axes"])),
             "grasp heights (middle, top)": parts[2]}
 
 
 def _failure_mode(task: str, order: list[str], final_blocks: dict, scene: dict, kind: str) -> str:
+    if task == "pick_place":
+        return "; ".join(pick_place_misses(final_blocks, scene, kind)) or "all in their quadrants (the check failed)"
     if task == "nut_assembly":
         return nut_failure_mode(final_blocks, scene, kind)
     return failure_mode(order, final_blocks, scene, kind)
@@ -93,6 +128,7 @@ def analyse_dataset(path: Path) -> dict:
     factors: dict[str, Counter] = defaultdict(Counter)
     totals: dict[str, Counter] = defaultdict(Counter)
     modes: Counter = Counter()
+    objects: Counter = Counter()  # pick_place: each object that missed its quadrant, over the failures
     default = Counter()
     with EpisodeDataset(path) as ds:
         n = len(ds)
@@ -108,6 +144,8 @@ def analyse_dataset(path: Path) -> dict:
                 default["success"] += success
             if not success:
                 modes[_failure_mode(task, attrs["block_order"], attrs["final_blocks"], attrs["scene"], attrs["kind"])] += 1
+                if task == "pick_place":
+                    objects.update(pick_place_misses(attrs["final_blocks"], attrs["scene"], attrs["kind"]))
         balance = ds.class_balance()
     return {
         "task": task, "episodes": n, "class_balance": balance,
@@ -115,6 +153,7 @@ def analyse_dataset(path: Path) -> dict:
                                                "success_rate": round(factors[factor][value] / totals[factor][value], 3)}
                                        for value in sorted(totals[factor])} for factor in totals},
         "failure_modes": dict(modes.most_common()),
+        **({"objects_missed": dict(objects.most_common())} if objects else {}),
         "default_choice_episodes": dict(default),
     }
 
@@ -167,7 +206,7 @@ def survey(task: str, seeds: int, first_seed: int, workers: int, max_tries: int,
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--task", default="stack_three", choices=["stack_three", "nut_assembly"],
+    parser.add_argument("--task", default="stack_three", choices=["stack_three", "nut_assembly", "pick_place"],
                         help="the survey's task (a dataset says its own)")
     parser.add_argument("--data", type=Path, default=None, help="a robosuite dataset to analyse (no simulation)")
     parser.add_argument("--seeds", type=int, default=0, help="scene seeds to survey in simulation (0: none)")

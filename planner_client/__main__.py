@@ -202,13 +202,9 @@ def _world_planner(args: argparse.Namespace, parser: argparse.ArgumentParser, ar
 
 
 def _continue_in_robosuite_env(args: argparse.Namespace, parser: argparse.ArgumentParser, argv: list[str]) -> None:
-    """Check the task is planned; unless robosuite imports here, re-run this command in its environment."""
+    """Unless robosuite imports here, re-run this command in its environment."""
     from planner_client.robosuite_env import RobosuiteMissing, has_robosuite, robosuite_python
-    from planner_client.robosuite_tamp import PLANNED_TASKS
 
-    if args.task not in PLANNED_TASKS:
-        parser.error(f"--task: the robosuite planner does not plan {args.task!r} yet (it plans "
-                     f"{', '.join(PLANNED_TASKS)})")
     if has_robosuite():
         return
     try:

@@ -16,7 +16,10 @@ default (alphabetical order, least wrist turn, centre grasps) first and the othe
 (:data:`NUT_GRIPS`), and the nut lowered around the peg with its handle towards the robot, or dropped
 from above the peg with the handle towards the robot or to the side: 30 choices (lowering it with the
 handle to the side is out of the arm's reach), the default (across, at the handle's middle, lowered)
-first.
+first. ``pick_place`` -- the four objects into their quadrants of the second bin: the order (24), per
+object the pair of faces (2, but 1 for the cereal box, whose other pair is wider than the open hand)
+and the grasp height (2): 3072 choices, the default (robosuite's object order Milk, Bread, Cereal, Can;
+least wrist turn; centre grasps) first and the other orders next.
 """
 
 from __future__ import annotations
@@ -30,12 +33,10 @@ from firp.core.contract import make_plan
 from planner_client.ik import ArmIK, ArmModel, IKConfig, IKFailure, rotation_yaw
 from planner_client.tamp import QUARTER, PickPlaceTiming, Segment, nearest_equivalent, pick_and_place, trajectory
 
-__all__ = ["PLANNED_TASKS", "Choice", "RobosuitePlan", "RobosuitePlannerConfig", "RobosuiteTampPlanner", "TASK_HORIZONS"]
+__all__ = ["Choice", "RobosuitePlan", "RobosuitePlannerConfig", "RobosuiteTampPlanner", "TASK_HORIZONS"]
 
 #: T of each task (robosuite_worker.tasks.TASKS, repeated here: the planner does not import robosuite's world)
 TASK_HORIZONS = {"stack_three": 80, "nut_assembly": 100, "pick_place": 200}
-#: the tasks the commands offer so far (pick_place has no planner yet)
-PLANNED_TASKS = ("stack_three", "nut_assembly")
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,10 @@ class RobosuitePlannerConfig:
     high_grasp_below_top: float = 0.008  # a "high" grasp closes this far below the object's top face
     timing: PickPlaceTiming = field(default_factory=PickPlaceTiming)
     ik: IKConfig = field(default_factory=IKConfig)
+    # pick_place's second bin lies at the edge of a top-down hand's reach, where the pull towards the home
+    # posture keeps the default solver a millimetre short: a weaker pull and more iterations there
+    reach_ik: IKConfig = field(default_factory=lambda: IKConfig(max_iterations=1000, posture_gain=0.01))
+    reach_tasks: tuple[str, ...] = ("pick_place",)
 
 
 #: grasp heights a choice can take, per moved object
@@ -56,6 +61,14 @@ GRASP_HEIGHTS = ("centre", "high")
 #: handle's end); the others succeed 94% of the time
 NUT_GRIPS = (0.0, 0.005, 0.01, -0.004, -0.008)
 NUT_GRIP_NAMES = ("m", "o", "O", "i", "I")
+#: the open hand's span (each finger 0.04 m from the centre) and half the height of a finger pad: a "high"
+#: grasp keeps the pads' upper edges this far below the object's top face less ``high_grasp_below_top``
+FINGER_OPEN_M = 0.04
+PAD_HALF_HEIGHT = 0.01
+#: pick_place: half the thickness of the second bin's dividers, and the room kept between a placed object's
+#: circumscribed circle and its quadrant's walls
+BIN_DIVIDER_HALF = 0.01
+PLACE_MARGIN = 0.01
 #: the nut's release height above the peg's top, for ``drops`` 1 (0 lowers it to the table around the peg)
 NUT_DROP_HEIGHT = 0.01
 
@@ -104,15 +117,16 @@ class RobosuiteTampPlanner:
         self.config = config
         self._ik: dict[tuple[float, ...], ArmIK] = {}
 
-    def ik(self, base: list[float]) -> ArmIK:
-        """IK on robosuite's Panda standing at ``base`` (one solver per base, built on first use)."""
-        key = tuple(round(v, 9) for v in base)
+    def ik(self, base: list[float], task: str = "") -> ArmIK:
+        """IK on robosuite's Panda standing at ``base`` (one solver per base and settings, built on first use)."""
+        config = self.config.reach_ik if task in self.config.reach_tasks else self.config.ik
+        key = (*(round(v, 9) for v in base), config)
         if key not in self._ik:
             from robosuite_worker.robot import panda_kinematics
 
             k = panda_kinematics()
             arm = ArmModel(k.model, k.tcp_site, k.qpos, k.dof, k.home, k.finger_axis, np.asarray(base, dtype=float))
-            self._ik[key] = ArmIK(arm, self.config.ik)
+            self._ik[key] = ArmIK(arm, config)
         return self._ik[key]
 
     # -- choices -----------------------------------------------------------------------------------
@@ -130,6 +144,14 @@ class RobosuiteTampPlanner:
             ways = ((0, 0), (1, 0), (1, 1))  # (drops, turns)
             return [Choice(names, (axis,), drops=(drop,), turns=(turn,), grips=(grip,))
                     for grip in range(len(NUT_GRIPS)) for drop, turn in ways for axis in (0, 1)]
+        if task == "pick_place":
+            names = tuple(observation["blocks"])
+            pairs = [self._grasp_pairs(observation["scene"]["objects"][name]) for name in names]
+            orders = list(permutations(names))
+            return [Choice(order, tuple(axes[names.index(n)] for n in order),
+                           tuple(heights[names.index(n)] for n in order))
+                    for heights in product((0, 1), repeat=len(names))
+                    for axes in product(*(range(len(p)) for p in pairs)) for order in orders]
         raise ValueError(f"task: the robosuite planner does not plan {task!r} yet")
 
     # -- what the trial loop replans over (planner_client.loop.Planner) ---------------------------------
@@ -147,7 +169,7 @@ class RobosuiteTampPlanner:
     def plan(self, task: str, observation: dict, choice: Choice | None = None) -> RobosuitePlan:
         choice = choice or self.choices(task, observation)[0]
         scene = observation["scene"]
-        ik = self.ik(scene["robot_base"])
+        ik = self.ik(scene["robot_base"], task)
         q = np.asarray(scene["robot_start"], dtype=float)
         start_pos, start_rot = ik.forward(q)
         start_yaw = rotation_yaw(start_rot, ik.arm.finger_axis)
@@ -156,6 +178,8 @@ class RobosuiteTampPlanner:
         elif task == "nut_assembly":
             # of the two hand yaws holding the handle alike, the first one the wrist can turn through
             alternatives = [self._nut_moves(observation, choice, start_yaw, flip) for flip in (0.0, np.pi, -np.pi)]
+        elif task == "pick_place":
+            alternatives = [self._pick_place_moves(observation, choice, start_yaw)]
         else:
             raise ValueError(f"task: the robosuite planner does not plan {task!r} yet")
         for k, moves in enumerate(alternatives):
@@ -233,6 +257,59 @@ class RobosuiteTampPlanner:
             nut_z = scene["table_height"] + scene["nut_half_height"] + self.config.release_gap
         release = np.array([*(peg[:2] + rotate(target_yaw, handle)), nut_z + grasp[2] - pos[2]])
         return [(grasp, grasp_yaw, release, grasp_yaw + turn)]
+
+    @staticmethod
+    def _grasp_pairs(model: dict) -> list[int]:
+        """The quarter turns (0: the fingers close along the object's x, 1: along its y) whose faces fit
+        between the open fingers with 1 cm to spare. A square or round object fits both ways, which hold it
+        alike but turn the hand -- wide along its fingers -- differently among its neighbours."""
+        half = model["half"]
+        return [j for j in (0, 1) if 2 * half[j] <= 2 * FINGER_OPEN_M - 0.01]
+
+    def _pick_place_moves(self, observation: dict, choice: Choice, neutral_yaw: float
+                          ) -> list[tuple[np.ndarray, float, np.ndarray, float]]:
+        """Each object in turn into its quadrant of the second bin: grasped top-down across a pair of faces
+        that fits the open hand, at its centre or high on it, and lowered onto the bin's floor at the reachable
+        point of its quadrant (:meth:`_place_point`) without turning."""
+        scene = observation["scene"]
+        moves = []
+        for k, (name, axis) in enumerate(zip(choice.order, choice.axes)):
+            model, estimate = scene["objects"][name], observation["blocks"][name]
+            pos, yaw = np.asarray(estimate["position"], dtype=float), float(estimate["yaw"])
+            half = model["half"]
+            centre = pos + [0.0, 0.0, model["centre_z"]]
+            grasp = centre.copy()
+            if choice.height(k) == "high":
+                grasp[2] += max(0.0, half[2] - self.config.high_grasp_below_top - PAD_HALF_HEIGHT)
+            quarter = self._grasp_pairs(model)[axis]
+            grasp_yaw = nearest_equivalent(yaw + quarter * QUARTER, neutral_yaw, np.pi)
+            target = self._place_point(scene, name, yaw)
+            release = np.array([target[0], target[1],
+                                scene["bin_floor"] + half[2] + self.config.release_gap + grasp[2] - centre[2]])
+            moves.append((grasp, grasp_yaw, release, grasp_yaw))
+        return moves
+
+    @staticmethod
+    def _place_point(scene: dict, name: str, yaw: float) -> np.ndarray:
+        """Where in its quadrant of the second bin an object goes: the quadrant's point nearest the robot's
+        base that keeps the object's footprint (at ``yaw``, its own) ``PLACE_MARGIN`` from the quadrant's
+        walls. robosuite's targets, the quadrants' centres, lie up to 7 cm beyond a top-down hand's reach
+        in the far quadrant."""
+        target = np.asarray(scene["targets"][name], dtype=float)[:2]
+        centre, size = np.asarray(scene["bin2"][:2], dtype=float), np.asarray(scene["bin_size"], dtype=float)
+        side = np.sign(target - centre)  # which quadrant
+        inner = centre + side * BIN_DIVIDER_HALF
+        outer = centre + side * size / 2
+        low, high = np.minimum(inner, outer), np.maximum(inner, outer)
+        hx, hy = scene["objects"][name]["half"][:2]
+        if abs(hx - hy) < 0.001:  # round: its radius
+            extent = np.array([hx, hy])
+        else:  # a box at the yaw it keeps from its grasp: its footprint along the world's axes
+            c, s = abs(np.cos(yaw)), abs(np.sin(yaw))
+            extent = np.array([c * hx + s * hy, s * hx + c * hy])
+        low, high = low + extent + PLACE_MARGIN, high - extent - PLACE_MARGIN
+        base = np.asarray(scene["robot_base"][:2], dtype=float)
+        return np.clip(base, low, np.maximum(low, high))
 
     def _segments(self, moves, start_pos: np.ndarray) -> tuple[list[Segment], list[float], list]:
         segments: list[Segment] = []

@@ -77,10 +77,35 @@ def _pick_place_objects(env) -> dict[str, int]:
     return {obj.name: env.obj_body_id[obj.name] for obj in env.objects}
 
 
+def _object_model(env, body: int) -> dict:
+    """What a planner knows of an object's model: the half extents of its collision shape's bounding box
+    (in the object's frame) and how far its centre lies above the body's origin."""
+    m = env.sim.model
+    geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == body and m.geom_contype[g]]
+    g = geoms[0]
+    # the box is in the geom's frame, which robosuite turns about z within the body for some objects (the
+    # bread's and the cereal box's by a quarter turn): its extents along the body's axes
+    w, x, y, z = m.geom_quat[g]
+    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    rotation = np.abs(np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]))
+    half = np.asarray(m.geom_aabb[g][3:], dtype=float)
+    centre = np.asarray(m.geom_pos[g]) + np.asarray(m.geom_aabb[g][:3])
+    return {"half": [*(float(v) for v in rotation @ half[:2]), float(half[2])], "centre_z": float(centre[2])}
+
+
 def _pick_place_scene(env) -> dict:
+    """The bins (bin2 holds the four target quadrants, divided by walls ``divider_top`` high), each object's
+    target (its quadrant's centre, robosuite's ``target_bin_placements``) and model."""
+    m = env.sim.model
+    bin2 = m.body_name2id("bin2")
+    bin_geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == bin2 and m.geom_contype[g]]
+    floor = float(env.bin2_pos[2] + m.geom_size[bin_geoms[0]][2])
+    walls = float(max(env.bin2_pos[2] + m.geom_pos[g][2] + m.geom_size[g][2] for g in bin_geoms))
     return {"table_height": float(env.bin1_pos[2]), "bin1": [float(v) for v in env.bin1_pos],
-            "bin2": [float(v) for v in env.bin2_pos],
+            "bin2": [float(v) for v in env.bin2_pos], "bin_size": [float(v) for v in env.bin_size[:2]],
+            "bin_floor": floor, "divider_top": walls,
             "targets": {obj.name: [float(v) for v in env.target_bin_placements[i]] for i, obj in enumerate(env.objects)},
+            "objects": {obj.name: _object_model(env, env.obj_body_id[obj.name]) for obj in env.objects},
             **_robot(env)}
 
 

@@ -24,8 +24,6 @@ def _cli(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
      "--task: 'stacking' is not a task of the robosuite world; one of stack_three, nut_assembly, pick_place"),
     (["collect", "--task", "stack_three", "--episodes", "1", "--out", "x.h5"],
      "--task: 'stack_three' is not a task of the mujoco world; one of stacking, replacement"),
-    (["run", "--world", "robosuite", "--task", "pick_place", "--no-score"],
-     "--task: the robosuite planner does not plan 'pick_place' yet (it plans stack_three, nut_assembly)"),
     (["run", "--world", "robosuite", "--horizon", "60", "--no-score"],
      "--horizon: the robosuite world's tasks have a fixed T"),
 ])

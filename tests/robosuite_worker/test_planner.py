@@ -91,3 +91,51 @@ def test_the_default_nut_plan_puts_the_nut_on_its_peg(world, planner):
     start = world.begin("nut_assembly", 4, 3.0, 3.0)
     outcome = world.execute(start, planner.plan("nut_assembly", start.observation).actions, record_frames=False)
     assert (outcome.success, outcome.kind) == (True, "success"), outcome.reason
+
+
+def test_pick_place_choices_cover_every_order_pair_of_faces_and_height_with_the_default_first(world, planner):
+    start = world.begin("pick_place", 0, 3.0, 3.0)
+    choices = planner.choices("pick_place", start.observation)
+    # 24 orders x 2 pairs of faces for milk, bread and can (the cereal box fits the hand one way only) x 2^4 heights
+    assert len(choices) == 24 * 8 * 16 == len({c.label() for c in choices})
+    assert choices[0].label() == "Milk-Bread-Cereal-Can:0000:cccc"
+    assert len({c.order for c in choices[:24]}) == 24  # the loop's first replans try the other orders
+
+
+@pytest.mark.parametrize(("seed", "index"), [(0, 0), (1, 700), (2, 3071)])
+def test_pick_place_plans_grasp_each_object_where_estimated_and_release_it_inside_its_quadrant(world, planner, seed,
+                                                                                               index):
+    start = world.begin("pick_place", seed, 3.0, 3.0)
+    choice = planner.choices("pick_place", start.observation)[index]
+    plan = planner.plan("pick_place", start.observation, choice)
+    categories, targets = split_plan(validate_plan(plan.actions))
+    assert plan.actions.shape == (200, 16) and _runs(categories) == list(PICK_PLACE_SEQUENCE) * 4
+    scene, blocks = start.observation["scene"], start.observation["blocks"]
+    ik = planner.ik(scene["robot_base"], "pick_place")
+    bin2, size = np.asarray(scene["bin2"][:2]), np.asarray(scene["bin_size"])
+    for k, (grasp, release) in enumerate(zip(_first_steps(categories, "grasp"), _first_steps(categories, "release"))):
+        name, model = choice.order[k], scene["objects"][choice.order[k]]
+        tcp, rot = ik.forward(targets[grasp, :7])
+        centre = np.add(blocks[name]["position"], [0, 0, model["centre_z"]])
+        np.testing.assert_allclose(tcp[:2], centre[:2], atol=1e-3)
+        assert (tcp[2] > centre[2] + 1e-3) == (choice.height(k) == "high")
+        finger_yaw = rotation_yaw(rot, ik.arm.finger_axis)
+        if name == "Cereal":  # the fingers close across its 3 cm faces, never across its 10 cm ones
+            assert abs(np.cos(finger_yaw - blocks[name]["yaw"])) < 0.1
+        at_release, _ = ik.forward(targets[release, :7])
+        target = np.asarray(scene["targets"][name][:2])
+        side = np.sign(target - bin2)
+        low = np.minimum(bin2, bin2 + side * size / 2)
+        assert np.all(at_release[:2] > low + 0.02) and np.all(at_release[:2] < low + size / 2 - 0.02)
+        # lowered to just above the floor: the object's bottom a release gap above the bin's floor
+        bottom = at_release[2] - (tcp[2] - centre[2]) - model["half"][2]
+        assert abs(bottom - scene["bin_floor"] - planner.config.release_gap) < 2e-3
+
+
+def test_a_pick_place_plan_puts_all_four_objects_in_their_bins(world, planner):
+    # scene 39 with the default grasps and the second order (Milk, Bread, Can, Cereal), seen to succeed
+    start = world.begin("pick_place", 39, 3.0, 3.0)
+    choice = planner.choices("pick_place", start.observation)[1]
+    assert choice.label() == "Milk-Bread-Can-Cereal:0000:cccc"
+    outcome = world.execute(start, planner.plan("pick_place", start.observation, choice).actions, record_frames=False)
+    assert (outcome.success, outcome.kind) == (True, "success"), outcome.reason
