@@ -119,11 +119,17 @@ def add_collect_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentPars
                    help="std of the planner's block position estimate error in the plane (0 = exact)")
     c.add_argument("--pose-error-deg", type=non_negative_float("--pose-error-deg"), default=3.0,
                    help="std of the planner's block yaw estimate error (0 = exact)")
+    c.add_argument("--ray", default=None, metavar="local|auto|ADDRESS",
+                   help="simulate on Ray actors instead of a process pool: local starts a private cluster with "
+                        "--workers CPUs for the run; auto joins the cluster of this machine (ray start) or "
+                        "RAY_ADDRESS; else a cluster address. --workers actors, each one world")
     c.add_argument("--no-progress", action="store_true")
     return c
 
 
 def collect_command(args: argparse.Namespace, parser: argparse.ArgumentParser, argv: list[str]) -> int:
+    if args.ray is not None and not args.ray.strip():
+        parser.error("--ray: give local, auto or a cluster address (HOST:PORT or ray://HOST:PORT)")
     world_tasks = ROBOSUITE_TASKS if args.world == "robosuite" else TASKS
     if args.task not in world_tasks:
         parser.error(f"--task: {args.task!r} is not a task of the {args.world} world; one of {', '.join(world_tasks)}")
@@ -137,7 +143,7 @@ def collect_command(args: argparse.Namespace, parser: argparse.ArgumentParser, a
         config = CollectConfig(task=args.task, episodes=args.episodes, out=args.out, workers=args.workers,
                                seed_offset=args.seed_offset, horizon=args.horizon or DEFAULT_T,
                                image_size=args.image_size, pose_error=error)
-        balance = collect(config, progress=not args.no_progress)
+        balance = collect(config, progress=not args.no_progress, ray=args.ray)
     print(f"{args.out}: {balance['total']} episodes, {balance['success']} success / {balance['failure']} failure "
           f"(success rate {balance['success_rate']:.3f}); {balance['new_episodes']} new in {balance['seconds']} s")
     print(json.dumps(balance))
@@ -155,7 +161,7 @@ def _collect_robosuite(args: argparse.Namespace, parser: argparse.ArgumentParser
     config = RobosuiteCollectConfig(task=args.task, episodes=args.episodes, out=args.out, workers=args.workers,
                                     seed_offset=args.seed_offset, image_size=args.image_size,
                                     pose_error_mm=args.pose_error_mm, pose_error_deg=args.pose_error_deg)
-    return collect_robosuite(config, progress=not args.no_progress)
+    return collect_robosuite(config, progress=not args.no_progress, ray=args.ray)
 
 
 def _postfix(records: list[dict]) -> dict[str, str]:
@@ -184,6 +190,8 @@ def main(argv: list[str] | None = None, prog: str = "python -m planner_client") 
 
 def _world_planner(args: argparse.Namespace, parser: argparse.ArgumentParser, argv: list[str]):
     """The world's planner; for robosuite's world the run continues in its environment (exec) if need be."""
+    if args.ray is not None and not args.ray.strip():
+        parser.error("--ray: give local, auto or a cluster address (HOST:PORT or ray://HOST:PORT)")
     world_tasks = ROBOSUITE_TASKS if args.world == "robosuite" else TASKS
     args.task = args.task or world_tasks[0]
     if args.task not in world_tasks:

@@ -2,9 +2,9 @@
 
 Episode ``i`` of a collection uses scene seed ``seed_offset + i`` and a block order drawn from
 that seed, so an episode is fully determined by its index: a resumed collection simply skips the
-indices already on disk. Workers (separate processes) each own a World and a planner and write
-their finished episode as one atomic part file; the parent shows progress and, at the end, merges
-the parts into the robomimic-style HDF5 file in one atomic replace.
+indices already on disk. Workers (separate processes, or Ray actors: :mod:`planner_client.ray_collection`)
+each own a World and a planner; each finished episode becomes one atomic part file; the parent shows
+progress and, at the end, merges the parts into the robomimic-style HDF5 file in one atomic replace.
 """
 
 from __future__ import annotations
@@ -116,13 +116,26 @@ def _init_worker(config: CollectConfig) -> None:
     _worker["planner"] = TampPlanner(PlannerConfig(horizon=config.horizon))
 
 
-def _collect_one(index: int) -> tuple[int, bool, str]:
+def _simulate_one(index: int) -> EpisodeRecord:
     config: CollectConfig = _worker["config"]
     seed = config.seed_offset + index
-    record = simulate_episode(_worker["world"], _worker["planner"], config.task, seed, episode_order(seed),
-                              config.pose_error, config.sampler)
-    write_episode_part(config.parts_dir, index, record)
-    return index, record.success, record.attrs["reason"]
+    return simulate_episode(_worker["world"], _worker["planner"], config.task, seed, episode_order(seed),
+                            config.pose_error, config.sampler)
+
+
+# -- the process pool's side of run_collection -------------------------------------------------
+_pool: dict = {}
+
+
+def _pool_init(initializer, initargs: tuple, simulate_one, parts_dir: Path) -> None:
+    initializer(*initargs)
+    _pool.update(simulate_one=simulate_one, parts_dir=parts_dir)
+
+
+def _pool_collect_one(index: int) -> tuple[int, bool]:
+    record = _pool["simulate_one"](index)
+    write_episode_part(_pool["parts_dir"], index, record)
+    return index, bool(record.success)
 
 
 def dataset_attrs(config: CollectConfig, layout: SceneLayout = SceneLayout()) -> dict:
@@ -137,13 +150,17 @@ def dataset_attrs(config: CollectConfig, layout: SceneLayout = SceneLayout()) ->
 
 
 def run_collection(*, out: Path, parts_dir: Path, episodes: int, workers: int, initializer, initargs: tuple,
-                   collect_one, attrs: dict, desc: str, progress: bool = True) -> dict:
-    """Collect episodes ``0 .. episodes-1`` into ``out`` with a pool of worker processes (resuming).
+                   simulate_one, attrs: dict, desc: str, progress: bool = True, ray: str | None = None,
+                   on_actors=None) -> dict:
+    """Collect episodes ``0 .. episodes-1`` into ``out`` with ``workers`` worker processes (resuming).
 
-    ``initializer(*initargs)`` sets up each worker (its world and planner); ``collect_one(index)`` simulates
-    episode ``index``, writes its part file and returns ``(index, success, reason)``. Both must be
-    module-level functions (workers are spawned, never forked: no forked GL contexts). At the end the
-    parts are merged into ``out`` with the dataset ``attrs``; the class balance is returned.
+    ``initializer(*initargs)`` sets up each worker (its world and planner); ``simulate_one(index)``
+    simulates episode ``index`` there and returns its :class:`EpisodeRecord`. Both must be module-level
+    functions (workers are spawned, never forked: no forked GL contexts). The workers are a process pool
+    on this machine, or with ``ray`` (``local``, ``auto`` or an address) Ray actors
+    (:mod:`planner_client.ray_collection`, which passes ``on_actors`` the actor handles). Each finished
+    episode is one atomic part file; at the end the parts are merged into ``out`` with the dataset
+    ``attrs``; the class balance is returned.
     """
     out.parent.mkdir(parents=True, exist_ok=True)
     done = completed_indices(out, parts_dir)
@@ -151,13 +168,25 @@ def run_collection(*, out: Path, parts_dir: Path, episodes: int, workers: int, i
     started = time.perf_counter()
     successes = 0
     if pending:
-        ctx = mp.get_context("spawn")
         bar = tqdm(total=episodes, initial=episodes - len(pending), desc=desc, unit="ep", disable=not progress)
-        with ctx.Pool(max(1, min(workers, len(pending))), initializer=initializer, initargs=initargs) as pool:
-            for n, (_, success, _) in enumerate(pool.imap_unordered(collect_one, pending), start=1):
+        if ray is not None:
+            from planner_client.ray_collection import simulate_on_ray
+
+            results = simulate_on_ray(address=ray, actors=workers, pending=pending, parts_dir=parts_dir,
+                                      initializer=initializer, initargs=initargs, simulate_one=simulate_one,
+                                      on_actors=on_actors)
+            for n, (_, success) in enumerate(results, start=1):
                 successes += success
                 bar.update(1)
                 bar.set_postfix(success=f"{successes / n:.2f}")
+        else:
+            ctx = mp.get_context("spawn")
+            with ctx.Pool(max(1, min(workers, len(pending))), initializer=_pool_init,
+                          initargs=(initializer, initargs, simulate_one, parts_dir)) as pool:
+                for n, (_, success) in enumerate(pool.imap_unordered(_pool_collect_one, pending), start=1):
+                    successes += success
+                    bar.update(1)
+                    bar.set_postfix(success=f"{successes / n:.2f}")
         bar.close()
     if pending or not out.exists():
         consolidate(parts_dir, out, attrs)
@@ -168,10 +197,11 @@ def run_collection(*, out: Path, parts_dir: Path, episodes: int, workers: int, i
     return balance
 
 
-def collect(config: CollectConfig, progress: bool = True) -> dict:
-    """Collect ``config.episodes`` episodes into ``config.out`` (resuming), return the class balance."""
+def collect(config: CollectConfig, progress: bool = True, ray: str | None = None, on_actors=None) -> dict:
+    """Collect ``config.episodes`` episodes into ``config.out`` (resuming), return the class balance;
+    on a process pool, or with ``ray`` on Ray actors (:func:`run_collection`)."""
     check_task(config.task)
     return run_collection(out=config.out, parts_dir=config.parts_dir, episodes=config.episodes,
                           workers=config.workers, initializer=_init_worker, initargs=(config,),
-                          collect_one=_collect_one, attrs=dataset_attrs(config), desc=f"collect {config.task}",
-                          progress=progress)
+                          simulate_one=_simulate_one, attrs=dataset_attrs(config), desc=f"collect {config.task}",
+                          progress=progress, ray=ray, on_actors=on_actors)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from firp.core.contract import FPS
-from firp.core.episodes import EpisodeRecord, write_episode_part
+from firp.core.episodes import EpisodeRecord
 from planner_client.collect import parts_dir_of, run_collection
 from planner_client.ik import IKFailure
 from planner_client.robosuite_tamp import TASK_HORIZONS, Choice, RobosuiteTampPlanner
@@ -105,12 +105,10 @@ def _init_worker(config: RobosuiteCollectConfig) -> None:
     _worker["planner"] = RobosuiteTampPlanner()
 
 
-def _collect_one(index: int) -> tuple[int, bool, str]:
+def _simulate_one(index: int) -> EpisodeRecord:
     config: RobosuiteCollectConfig = _worker["config"]
-    record = simulate_episode(_worker["world"], _worker["planner"], config.task, config.seed_offset + index,
-                              config.pose_error_mm, config.pose_error_deg)
-    write_episode_part(config.parts_dir, index, record)
-    return index, record.success, record.attrs["reason"]
+    return simulate_episode(_worker["world"], _worker["planner"], config.task, config.seed_offset + index,
+                            config.pose_error_mm, config.pose_error_deg)
 
 
 def dataset_attrs(config: RobosuiteCollectConfig) -> dict:
@@ -127,11 +125,12 @@ def dataset_attrs(config: RobosuiteCollectConfig) -> dict:
             "choices": "uniform over the planner's choices (planner_client.collect_robosuite.episode_choice)"}
 
 
-def collect_robosuite(config: RobosuiteCollectConfig, progress: bool = True) -> dict:
-    """Collect ``config.episodes`` robosuite episodes into ``config.out`` (resuming), return the class balance."""
+def collect_robosuite(config: RobosuiteCollectConfig, progress: bool = True, ray: str | None = None) -> dict:
+    """Collect ``config.episodes`` robosuite episodes into ``config.out`` (resuming), return the class balance;
+    on a process pool, or with ``ray`` on Ray actors (:func:`planner_client.collect.run_collection`)."""
     if config.task not in TASK_HORIZONS:
         raise ValueError(f"task: the robosuite world has no task {config.task!r}; one of {list(TASK_HORIZONS)}")
     return run_collection(out=config.out, parts_dir=config.parts_dir, episodes=config.episodes,
                           workers=config.workers, initializer=_init_worker, initargs=(config,),
-                          collect_one=_collect_one, attrs=dataset_attrs(config),
-                          desc=f"collect robosuite {config.task}", progress=progress)
+                          simulate_one=_simulate_one, attrs=dataset_attrs(config),
+                          desc=f"collect robosuite {config.task}", progress=progress, ray=ray)

@@ -1,0 +1,97 @@
+"""Collection on a Ray cluster: actors that each build their world once and simulate many episodes.
+
+``firp collect --ray local|auto|ADDRESS`` runs the same episodes as the process pool
+(:func:`planner_client.collect.run_collection`), on Ray instead:
+
+* ``local`` starts a private single-node cluster with ``--workers`` CPUs for the run and stops it
+  after; ``auto`` joins the cluster ``ray start`` made on this machine (or ``RAY_ADDRESS``); any other
+  value is a cluster address (``HOST:PORT`` or ``ray://HOST:PORT``).
+* Each actor runs the world's initializer once (its world, its planner) and then simulates episode
+  after episode; it returns the finished :class:`~firp.core.episodes.EpisodeRecord` to the driver,
+  which writes it as one atomic part file. The cluster's nodes need no shared filesystem, only the
+  same installed packages.
+* An actor whose process dies is restarted by Ray and its unfinished calls are retried
+  (``max_restarts`` / ``max_task_retries``); the driver writes each index once, so a killed worker
+  costs a retry, never a lost or doubled episode. An episode is determined by its index alone, so the
+  episodes are bit-identical to the process pool's.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+from typing import Callable, Iterator
+
+from firp.core.episodes import EpisodeRecord, write_episode_part
+
+__all__ = ["EpisodeSimulator", "IN_FLIGHT_PER_ACTOR", "connect", "simulate_on_ray"]
+
+#: calls queued on each actor: one running, one waiting, so an actor never idles between episodes
+IN_FLIGHT_PER_ACTOR = 2
+
+
+class EpisodeSimulator:
+    """One Ray actor: a world and a planner, made once by ``initializer(*initargs)``."""
+
+    def __init__(self, initializer: Callable, initargs: tuple, simulate_one: Callable[[int], EpisodeRecord]):
+        os.environ.setdefault("MUJOCO_GL", "egl")
+        initializer(*initargs)
+        self._simulate_one = simulate_one
+
+    def pid(self) -> int:
+        return os.getpid()
+
+    def simulate(self, index: int) -> tuple[int, EpisodeRecord]:
+        return index, self._simulate_one(index)
+
+
+def connect(address: str, cpus: int):
+    """Connect to (``auto`` / an address) or start (``local``) a Ray cluster, unless this process is
+    connected already; returns the ``ray`` module and whether it connected here."""
+    try:
+        import ray
+    except ImportError as exc:  # pragma: no cover - the dev and robosuite extras install it
+        raise RuntimeError("--ray: Ray is not installed in this environment (pip install 'firp[ray]')") from exc
+    if ray.is_initialized():
+        return ray, False
+    options = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
+    if address == "local":
+        ray.init(num_cpus=cpus, **options)
+    else:
+        ray.init(address=address, **options)
+    return ray, True
+
+
+def simulate_on_ray(*, address: str, actors: int, pending: list[int], parts_dir, initializer: Callable,
+                    initargs: tuple, simulate_one: Callable[[int], EpisodeRecord],
+                    on_actors: Callable[[list], None] | None = None) -> Iterator[tuple[int, bool]]:
+    """Simulate the ``pending`` episode indices on ``actors`` Ray actors; write each one's part file as it
+    arrives and yield ``(index, success)``. ``on_actors`` (tests, tools) receives the actor handles once
+    they exist. The driver disconnects at the end if it connected here, which stops a private ``local``
+    cluster and leaves a joined one running."""
+    ray, connected_here = connect(address, actors)
+    try:
+        remote = ray.remote(num_cpus=1, max_restarts=-1, max_task_retries=-1)(EpisodeSimulator)
+        handles = [remote.remote(initializer, initargs, simulate_one) for _ in range(max(1, min(actors, len(pending))))]
+        if on_actors is not None:
+            on_actors(handles)
+        queue = deque(pending)
+        in_flight: dict = {}
+
+        def submit(actor) -> None:
+            if queue:
+                in_flight[actor.simulate.remote(queue.popleft())] = actor
+
+        for actor in handles:
+            for _ in range(IN_FLIGHT_PER_ACTOR):
+                submit(actor)
+        while in_flight:
+            (ref,), _ = ray.wait(list(in_flight), num_returns=1)
+            actor = in_flight.pop(ref)
+            index, record = ray.get(ref)
+            submit(actor)
+            write_episode_part(parts_dir, index, record)
+            yield index, bool(record.success)
+    finally:
+        if connected_here:  # a private cluster stops with its driver; a joined one is only disconnected from
+            ray.shutdown()
