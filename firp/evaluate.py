@@ -8,6 +8,7 @@ needs its authors' published weights and cannot run here: it is reported as not 
 
     firp evaluate --data data/stacking.h5 --repeats 5            # the product preset
     firp evaluate --data data/stacking.h5 --repeats 5 --preset paper
+    firp evaluate --data data/stacking.h5 --repeats 5 --ray local   # the runs as Ray tasks
 """
 
 from __future__ import annotations
@@ -118,6 +119,48 @@ def evaluate_method(name: str, base: TrainConfig, data: SequenceData, repeat: in
     }
 
 
+def _evaluate_task(name: str, base: TrainConfig, data: SequenceData, repeat: int, run_dir: Path,
+                   threads: int) -> dict:
+    """One (repeat, method) run inside a Ray worker, with the driver's thread count."""
+    torch.set_num_threads(threads)
+    return evaluate_method(name, base, data, repeat, run_dir, progress=False)
+
+
+def evaluate_on_ray(address: str, runs: list[tuple[int, str]], base: TrainConfig, data: SequenceData, out: Path,
+                    threads: int):
+    """Train ``runs`` as Ray tasks of ``threads`` CPUs each and yield ``((repeat, method), row)`` as they finish.
+
+    The sequences go into Ray's object store once and every task reads them from there; each task seeds
+    its training as the sequential loop does, so its row equals the sequential run's (but for
+    ``train_seconds``). A worker that dies is retried by Ray (``max_retries``); checkpoints stay on
+    the node that trained (under ``out`` there). ``local`` starts a private cluster of this machine's
+    CPUs for the run; the driver disconnects at the end if it connected here."""
+    import os
+
+    import ray
+
+    if not runs:
+        return
+    connected_here = not ray.is_initialized()
+    if connected_here:
+        options = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
+        if address == "local":
+            ray.init(num_cpus=os.cpu_count(), **options)
+        else:
+            ray.init(address=address, **options)
+    try:
+        task = ray.remote(num_cpus=threads, max_retries=3)(_evaluate_task)
+        shared = ray.put(data)
+        pending = {task.remote(name, base, shared, repeat, out.resolve() / run_name(repeat, name), threads): (repeat, name)
+                   for repeat, name in runs}
+        while pending:
+            (ref,), _ = ray.wait(list(pending), num_returns=1)
+            yield pending.pop(ref), ray.get(ref)
+    finally:
+        if connected_here:
+            ray.shutdown()
+
+
 def ensemble_rows(rows: list[dict], labels: np.ndarray, min_members: int = 2) -> list[dict]:
     """Per repeat, the mean score of every FIRP variant trained in it: an ensemble of models that differ in
     their TCR weights, like the tuned top five (whose members differ in alpha, beta, lambda), at no extra
@@ -194,6 +237,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="train only these repeat indices (e.g. one process per core or machine, same --out); "
                              "the summary still covers every finished (repeat, method) of the first --repeats")
     parser.add_argument("--out", type=Path, default=None, help="results directory (default runs/eval-<data stem>)")
+    parser.add_argument("--ray", default=None, metavar="local|auto|ADDRESS",
+                        help="train the (repeat, method) runs as Ray tasks of --threads CPUs each: local starts a "
+                             "private cluster of this machine's CPUs for the run, auto joins this machine's "
+                             "(ray start) or RAY_ADDRESS's, else a cluster address; results equal the sequential run's")
     add_model_flags(parser)
     add_loss_flags(parser)
     args = parser.parse_args(argv)
@@ -208,20 +255,20 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(args.threads)
     data = load_sequences(args.data, base.model.encoder, args.cache_dir, progress=not args.no_progress)
-    rows = []
-    for repeat in range(args.repeats):
-        for name in args.methods:
-            path = out / f"{run_name(repeat, name)}.json"
-            if path.exists():
-                rows.append(json.loads(path.read_text()))
-                continue
-            if args.only_repeats is not None and repeat not in args.only_repeats:
-                continue
-            row = evaluate_method(name, base, data, repeat, out / run_name(repeat, name), not args.no_progress)
-            path.write_text(json.dumps(row, indent=1))
-            rows.append(row)
-            print(f"repeat {repeat} {name}: test balanced accuracy {row['test_balanced_accuracy']:.3f} "
-                  f"(valid {row['valid_balanced_accuracy']:.3f}, {row['train_seconds']} s)", flush=True)
+    runs = [(repeat, name) for repeat in range(args.repeats) for name in args.methods]
+    done = {run: json.loads(path.read_text()) for run in runs if (path := out / f"{run_name(*run)}.json").exists()}
+    todo = [run for run in runs if run not in done and (args.only_repeats is None or run[0] in args.only_repeats)]
+    if args.ray is not None:
+        finished = evaluate_on_ray(args.ray, todo, base, data, out, args.threads)
+    else:
+        finished = ((run, evaluate_method(run[1], base, data, run[0], out / run_name(*run), not args.no_progress))
+                    for run in todo)
+    for (repeat, name), row in finished:
+        (out / f"{run_name(repeat, name)}.json").write_text(json.dumps(row, indent=1))
+        done[(repeat, name)] = row
+        print(f"repeat {repeat} {name}: test balanced accuracy {row['test_balanced_accuracy']:.3f} "
+              f"(valid {row['valid_balanced_accuracy']:.3f}, {row['train_seconds']} s)", flush=True)
+    rows = [done[run] for run in runs if run in done]  # in protocol order, however they finished
     rows = [r for r in rows if r["method"] != ENSEMBLE] + ensemble_rows(rows, data.labels.numpy())
     table = summary_table(rows, args.methods)
     bar = target_line(rows)

@@ -103,3 +103,19 @@ def test_presets_and_flags_make_one_recipe():
     assert product.epochs == 100 and not product.model.geometry.enabled and product.model.loss.overshooting == 0.0
     assert product.model.action_chunk == PRESETS["product"].train.model.action_chunk == 8
     assert recipe_flags("product", overrides) == "--preset product --epochs 100 --no-plan-geometry --lambda 0.0"
+
+
+def test_runs_as_ray_tasks_equal_the_sequential_run(tiny_dataset, tmp_path):
+    pytest.importorskip("ray", reason="the ray extra is not installed")
+    common = ["--data", str(tiny_dataset), "--repeats", "2", "--methods", "a_mlp", "firp", "--epochs", "2",
+              "--threads", "1", "--image-size", "32", "--cache-dir", str(tmp_path / "cache"), "--no-progress"]
+    assert main([*common, "--out", str(tmp_path / "sequential")]) == 0
+    assert main([*common, "--out", str(tmp_path / "ray"), "--ray", "local"]) == 0
+
+    def rows(name: str) -> list[dict]:
+        out = json.loads((tmp_path / name / "results.json").read_text())["rows"]
+        return [{k: v for k, v in row.items() if k != "train_seconds"} for row in out]
+
+    sequential, on_ray = rows("sequential"), rows("ray")
+    assert [(r["repeat"], r["method"]) for r in on_ray] == [(r["repeat"], r["method"]) for r in sequential]
+    assert on_ray == sequential  # every score, threshold and metric, in protocol order
