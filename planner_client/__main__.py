@@ -86,8 +86,12 @@ def add_run_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     run.add_argument("--record", type=Path, default=None, metavar="DIR",
                      help="record every executed plan (frames, plan, label, scene id, the score and the bundle "
                           "version) as episodes training reads: DIR/executions.h5 (resumable)")
-    run.add_argument("--sim", default=settings.sim_url, metavar="URL",
-                     help="running sim worker (env FIRP_PLANNER_SIM_URL); default: launch one for the run")
+    run.add_argument("--sim", default=settings.sim_url, metavar="URL[,URL...]",
+                     help="running sim worker(s) (env FIRP_PLANNER_SIM_URL); several, comma-separated, run one "
+                          "trial each at a time; default: launch --parallel of them for the run")
+    run.add_argument("--parallel", type=int_in_range("--parallel", 1, 64), default=None, metavar="K",
+                     help="trials run at once, one per sim worker (launched: K of them; given: one per --sim URL); "
+                          "one scoring service serves them all; records equal a sequential run's (default 1)")
     run.add_argument("--service", default=settings.service_url, metavar="URL",
                      help="running scoring service (env FIRP_PLANNER_SERVICE_URL); default: launch one for the run")
     run.add_argument("--bundle", type=Path, default=None,
@@ -190,8 +194,6 @@ def main(argv: list[str] | None = None, prog: str = "python -m planner_client") 
 
 def _world_planner(args: argparse.Namespace, parser: argparse.ArgumentParser, argv: list[str]):
     """The world's planner; for robosuite's world the run continues in its environment (exec) if need be."""
-    if args.ray is not None and not args.ray.strip():
-        parser.error("--ray: give local, auto or a cluster address (HOST:PORT or ray://HOST:PORT)")
     world_tasks = ROBOSUITE_TASKS if args.world == "robosuite" else TASKS
     args.task = args.task or world_tasks[0]
     if args.task not in world_tasks:
@@ -249,7 +251,10 @@ def run_command(args: argparse.Namespace, parser: argparse.ArgumentParser, argv:
                        replan_on_uninformative=args.replan_on_uninformative)
     plan = ServicePlan(task=args.task, out_dir=out.parent, sim_url=args.sim, service_url=args.service,
                        bundle=args.bundle, score=not args.no_score, api_key=args.api_key,
-                       ready_timeout=args.ready_timeout, world=args.world)
+                       ready_timeout=args.ready_timeout, world=args.world, parallel=args.parallel or 1)
+    if plan.sim_urls and args.parallel is not None and args.parallel != len(plan.sim_urls):
+        parser.error(f"--parallel: with --sim one trial runs on each given sim worker at a time; {args.parallel} "
+                     f"asked, {len(plan.sim_urls)} URL(s) given: give {args.parallel} URLs or drop --parallel")
     try:
         plan.bundle_to_launch()
     except MissingBundle as exc:
@@ -267,7 +272,7 @@ def run_command(args: argparse.Namespace, parser: argparse.ArgumentParser, argv:
         with open_services(plan) as services:
             bar = tqdm(total=args.trials, initial=len(records), desc=f"{args.task} trials", unit="trial")
             try:
-                for record in run_trials(config, services.sim, planner, services.scorer):
+                for record in run_trials(config, services.sim, planner, services.scorer, services.sims):
                     records.append(record)
                     bar.set_postfix(_postfix(records), refresh=False)
                     bar.update(1)

@@ -32,12 +32,15 @@ different settings.
 
 from __future__ import annotations
 
+import copy
 import json
+import queue
 import time
 import uuid
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Hashable, Iterator, Protocol, Sequence
+from typing import Any, Callable, Hashable, Iterator, Protocol, Sequence
 
 import numpy as np
 
@@ -439,11 +442,47 @@ def _run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: Pla
     return record
 
 
+def in_trial_order(pending: list[int], sims: Sequence[SimBackend[Any]], planner: Planner,
+                   run_one: Callable[[int, SimBackend[Any], Planner], dict]) -> Iterator[dict]:
+    """``run_one(trial, sim, planner)`` for every pending trial, yielded in trial order.
+
+    With one sim the trials run one after another. With several, one trial runs on each at a time, in
+    threads that wait on HTTP (the sim workers simulate, the scoring service micro-batches the
+    concurrent requests); each thread has its own copy of the planner (its IK's MuJoCo data is not
+    shared). A trial's record is yielded once every earlier one is, so the run file stays in trial
+    order and a resumed run skips a prefix plus what finished; an interrupt cancels the trials not
+    begun."""
+    if len(sims) <= 1:
+        for trial in pending:
+            yield run_one(trial, sims[0], planner)
+        return
+    slots: queue.SimpleQueue = queue.SimpleQueue()
+    for sim in sims:
+        slots.put((sim, copy.deepcopy(planner)))
+
+    def job(trial: int) -> dict:
+        sim, own_planner = slots.get()
+        try:
+            return run_one(trial, sim, own_planner)
+        finally:
+            slots.put((sim, own_planner))
+
+    pool = ThreadPoolExecutor(len(sims), thread_name_prefix="trial")
+    try:
+        futures = [pool.submit(job, trial) for trial in pending]
+        for future in futures:
+            yield future.result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
 def run_trials(config: RunConfig, sim: SimBackend[Any], planner: Planner,
-               scorer: Scorer | None = None) -> Iterator[dict]:
+               scorer: Scorer | None = None, sims: Sequence[SimBackend[Any]] = ()) -> Iterator[dict]:
     """Run the pending trials, appending one JSON line per finished trial; yields each record.
 
-    Without a scorer only TAMP alone and the oracle line are run (``--no-score``)."""
+    Without a scorer only TAMP alone and the oracle line are run (``--no-score``). With ``sims`` (several
+    sim backends, ``sim`` among them or not) the trials run in parallel, one on each (:func:`in_trial_order`);
+    every record equals the sequential run's but for its timings and request id."""
     model = scorer.model() if scorer is not None else None
     identity = run_identity(config, planner, model)
     if config.out.exists() and not config.resume:
@@ -461,11 +500,13 @@ def run_trials(config: RunConfig, sim: SimBackend[Any], planner: Planner,
     recorder = None if config.record is None else ExecutionRecorder(config.record, config.task,
                                                                     planner.horizon(config.task), config.world)
     try:
+        pending = [trial for trial in range(config.trials) if trial not in done]
+
+        def run_one(trial: int, trial_sim: SimBackend[Any], trial_planner: Planner) -> dict:
+            return run_trial(trial, config, trial_sim, trial_planner, scorer, identity, recorder, decision)
+
         with config.out.open("a") as sink:
-            for trial in range(config.trials):
-                if trial in done:
-                    continue
-                record = run_trial(trial, config, sim, planner, scorer, identity, recorder, decision)
+            for record in in_trial_order(pending, list(sims) or [sim], planner, run_one):
                 if recorder is not None:
                     record["recorded_executions"] = record["executions"]
                 sink.write(json.dumps(record) + "\n")

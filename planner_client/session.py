@@ -1,6 +1,7 @@
 """The services one run talks to: given by URL, or launched here on loopback for the run's duration.
 
-With no ``--sim`` / ``--service`` the run launches both (:class:`planner_client.launcher.Launcher`,
+With no ``--sim`` / ``--service`` the run launches both (``--parallel K``: K sim workers, one service);
+``--sim`` may list several running sim workers, comma-separated (:class:`planner_client.launcher.Launcher`,
 logs beside the run file); given one URL, it launches only the other. A launched sim worker is
 used through :class:`RestartingSim` and a launched scoring service through :class:`RestartingScorer`,
 so either one killed mid-run is restarted and no trial is lost.
@@ -10,7 +11,7 @@ Given URLs are checked for readiness first, so a wrong URL fails before anything
 from __future__ import annotations
 
 from contextlib import ExitStack, contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -33,6 +34,12 @@ class ServicePlan:
     api_key: str | None = None
     ready_timeout: float = 120.0
     world: str = "mujoco"  # or "robosuite": which world's worker a launched sim is
+    parallel: int = 1  # sim workers launched when sim_url is None: one trial runs on each at a time
+
+    @property
+    def sim_urls(self) -> list[str]:
+        """The running sim workers given (``sim_url`` may list several, comma-separated)."""
+        return [u.strip() for u in (self.sim_url or "").split(",") if u.strip()]
 
     def launcher_options(self) -> dict:
         """How the launched services start: the world's worker, and the service under an interpreter with
@@ -53,15 +60,16 @@ class ServicePlan:
 
 @dataclass
 class Services:
-    sim: Any  # a planner_client.backend.SimBackend
+    sim: Any  # a planner_client.backend.SimBackend: the first of ``sims``
     scorer: Scorer | None  # a ScoreClient, or a RestartingScorer when the run launched the service
     launcher: Launcher | None
+    sims: list = field(default_factory=list)  # every sim backend; trials run on them in parallel
+    sim_launchers: list[Launcher] = field(default_factory=list)  # the launched sim workers beyond the first
 
     @property
     def sim_restarts(self) -> int:
-        if self.launcher is None or not self.launcher.runs_sim:
-            return 0
-        return self.launcher.sim_restarts
+        launchers = [self.launcher, *self.sim_launchers]
+        return sum(launcher.sim_restarts for launcher in launchers if launcher is not None and launcher.runs_sim)
 
     @property
     def service_restarts(self) -> int:
@@ -74,9 +82,11 @@ def open_services(plan: ServicePlan) -> Iterator[Services]:
     bundle = plan.bundle_to_launch()
     with ExitStack() as stack:
         sim = scorer = None
-        if plan.sim_url:
-            sim = stack.enter_context(SimClient(plan.sim_url))
-            sim.wait_ready(plan.ready_timeout)
+        sims = []
+        for url in plan.sim_urls:
+            sims.append(stack.enter_context(SimClient(url)))
+            sims[-1].wait_ready(plan.ready_timeout)
+        sim = sims[0] if sims else None
         if plan.score and plan.service_url:
             scorer = stack.enter_context(ScoreClient(plan.service_url, plan.api_key))
             scorer.wait_ready(plan.ready_timeout)
@@ -84,9 +94,18 @@ def open_services(plan: ServicePlan) -> Iterator[Services]:
         if sim is None or bundle is not None:
             launcher = stack.enter_context(Launcher(plan.out_dir, bundle=bundle, sim=sim is None,
                                                     ready_timeout=plan.ready_timeout, **plan.launcher_options()))
+        sim_launchers = []
         if sim is None:
             sim = launcher.sim()
             stack.callback(sim.close)
+            sims.append(sim)
+            # the other sim workers, each in a launcher of its own (its own logs folder, its own restarts)
+            for k in range(1, plan.parallel):
+                extra = stack.enter_context(Launcher(plan.out_dir / f"sim-{k}", sim=True,
+                                                     ready_timeout=plan.ready_timeout, **plan.launcher_options()))
+                sim_launchers.append(extra)
+                sims.append(extra.sim())
+                stack.callback(sims[-1].close)
         if bundle is not None:
             scorer = stack.enter_context(launcher.scorer(plan.api_key))
-        yield Services(sim, scorer, launcher)
+        yield Services(sim, scorer, launcher, sims, sim_launchers)

@@ -582,3 +582,50 @@ def test_an_uninformative_bundle_executes_tamps_first_plan_and_the_summary_says_
                          EvidencedScorer([0.1, 0.9, 0.9, 0.9, 0.9, 0.9], threshold=0.5, evidence=_evidence(0.45, [0.1, 0.2])))
     assert (again["firp_rule"], again["firp_order"]) == ("threshold", list(ORDERS[1]))
     assert "replanned on its scores anyway" in markdown(summarise(read_records(tmp_path / "o.jsonl")))
+
+
+# -- trials in parallel ----------------------------------------------------------------------------------
+def _comparable(record: dict) -> dict:
+    """A trial record without what differs between any two runs: its timings and its request id."""
+    return {k: v for k, v in record.items() if not k.endswith("_s") and k not in ("seconds", "request_id")}
+
+
+def test_trials_in_parallel_on_two_sim_workers_equal_a_sequential_run(tmp_path, scorer):
+    planner = TampPlanner(PlannerConfig(horizon=T))
+    config = dict(trials=4, max_iterations=3, threshold=0.5, seed=20)
+    with Launcher(tmp_path / "a", sim=True) as first, Launcher(tmp_path / "b", sim=True) as second:
+        sim_a, sim_b = first.sim(), second.sim()
+        try:
+            sequential = list(run_trials(RunConfig(out=tmp_path / "seq.jsonl", **config), sim_a, planner, scorer))
+            # two trials at once, one on each worker; a run of 2 resumed to 4 in parallel
+            list(run_trials(RunConfig(out=tmp_path / "par.jsonl", **{**config, "trials": 2}), sim_a, planner, scorer,
+                            sims=[sim_a, sim_b]))
+            resumed = list(run_trials(RunConfig(out=tmp_path / "par.jsonl", resume=True, **config), sim_a, planner,
+                                      scorer, sims=[sim_a, sim_b]))
+        finally:
+            sim_a.close()
+            sim_b.close()
+    assert [r["trial"] for r in resumed] == [2, 3]
+    parallel = read_records(tmp_path / "par.jsonl")
+    assert [r["trial"] for r in parallel] == [0, 1, 2, 3]  # the run file stays in trial order
+    assert [_comparable(r) for r in parallel] == [_comparable(r) for r in sequential]
+    assert len({r["request_id"] for r in parallel}) == 4
+
+
+def test_cli_parallel_launches_k_sim_workers_and_one_service(tmp_path, tiny_bundle):
+    out = tmp_path / "runs" / "run.jsonl"
+    assert main(["run", "--trials", "3", "--horizon", str(T), "--max-iterations", "2", "--threshold", "1.01",
+                 "--bundle", str(tiny_bundle), "--out", str(out), "--seed", "5", "--parallel", "2"]) == 0
+    records = read_records(out)
+    assert [r["trial"] for r in records] == [0, 1, 2] and [r["seed"] for r in records] == [5, 6, 7]
+    assert {p.name for p in (out.parent / "logs").iterdir()} == {"service.log", "sim_worker.log"}
+    assert {p.name for p in (out.parent / "sim-1" / "logs").iterdir()} == {"sim_worker.log"}
+
+
+def test_cli_parallel_must_match_the_sim_urls_given(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["run", "--trials", "1", "--no-score", "--sim", "http://127.0.0.1:9,http://127.0.0.1:10",
+              "--parallel", "3", "--out", str(tmp_path / "r.jsonl")])
+    assert exit_.value.code == 2
+    assert "--parallel: with --sim one trial runs on each given sim worker at a time; 3 asked, 2 URL(s)" in \
+        capsys.readouterr().err
