@@ -9,6 +9,7 @@ progress and, at the end, merges the parts into the robomimic-style HDF5 file in
 
 from __future__ import annotations
 
+import logging
 import multiprocessing as mp
 import os
 import time
@@ -20,12 +21,15 @@ from tqdm import tqdm
 
 from firp.core.contract import DEFAULT_T, FPS
 from firp.core.episodes import EpisodeDataset, EpisodeRecord, completed_indices, consolidate, write_episode_part
+from planner_client.ik import IKFailure
 from planner_client.tamp import Plan, PlannerConfig, TampPlanner, block_orders
 from sim_worker.executor import ExecutorConfig, execute_plan
 from sim_worker.perception import PoseErrorConfig, observation
 from sim_worker.scene import BLOCK_NAMES, CAMERA, RenderConfig, SceneLayout
 from sim_worker.tasks import SamplerConfig, check_task, sample_initial_blocks
 from sim_worker.world import World
+
+log = logging.getLogger(__name__)
 
 ORDER_STREAM = 11  # separates the block-order draw from the scene and perception streams
 
@@ -132,8 +136,13 @@ def _pool_init(initializer, initargs: tuple, simulate_one, parts_dir: Path) -> N
     _pool.update(simulate_one=simulate_one, parts_dir=parts_dir)
 
 
-def _pool_collect_one(index: int) -> tuple[int, bool]:
-    record = _pool["simulate_one"](index)
+def _pool_collect_one(index: int) -> tuple[int, bool | None]:
+    """Simulate and write episode ``index``: its success, or None when the planner could plan nothing."""
+    try:
+        record = _pool["simulate_one"](index)
+    except IKFailure as exc:
+        log.warning("episode %d skipped: %s", index, exc)
+        return index, None
     write_episode_part(_pool["parts_dir"], index, record)
     return index, bool(record.success)
 
@@ -160,13 +169,16 @@ def run_collection(*, out: Path, parts_dir: Path, episodes: int, workers: int, i
     on this machine, or with ``ray`` (``local``, ``auto`` or an address) Ray actors
     (:mod:`planner_client.ray_collection`, which passes ``on_actors`` the actor handles). Each finished
     episode is one atomic part file; at the end the parts are merged into ``out`` with the dataset
-    ``attrs``; the class balance is returned.
+    ``attrs``; the class balance is returned. A scene the planner cannot plan at all (``IKFailure``)
+    gives no episode: it is logged, listed in the balance (``unplannable``) and tried again on resume,
+    and the other episodes go on.
     """
     out.parent.mkdir(parents=True, exist_ok=True)
     done = completed_indices(out, parts_dir)
     pending = [i for i in range(episodes) if i not in done]
     started = time.perf_counter()
-    successes = 0
+    successes = simulated = 0
+    unplannable: list[int] = []
     if pending:
         bar = tqdm(total=episodes, initial=episodes - len(pending), desc=desc, unit="ep", disable=not progress)
         if ray is not None:
@@ -175,24 +187,32 @@ def run_collection(*, out: Path, parts_dir: Path, episodes: int, workers: int, i
             results = simulate_on_ray(address=ray, actors=workers, pending=pending, parts_dir=parts_dir,
                                       initializer=initializer, initargs=initargs, simulate_one=simulate_one,
                                       on_actors=on_actors)
-            for n, (_, success) in enumerate(results, start=1):
-                successes += success
-                bar.update(1)
-                bar.set_postfix(success=f"{successes / n:.2f}")
         else:
             ctx = mp.get_context("spawn")
-            with ctx.Pool(max(1, min(workers, len(pending))), initializer=_pool_init,
-                          initargs=(initializer, initargs, simulate_one, parts_dir)) as pool:
-                for n, (_, success) in enumerate(pool.imap_unordered(_pool_collect_one, pending), start=1):
+            pool = ctx.Pool(max(1, min(workers, len(pending))), initializer=_pool_init,
+                            initargs=(initializer, initargs, simulate_one, parts_dir))
+            results = pool.imap_unordered(_pool_collect_one, pending)
+        try:
+            for index, success in results:
+                if success is None:
+                    unplannable.append(index)
+                else:
                     successes += success
-                    bar.update(1)
-                    bar.set_postfix(success=f"{successes / n:.2f}")
+                    simulated += 1
+                bar.update(1)
+                bar.set_postfix(success=f"{successes / max(1, simulated):.2f}", unplannable=len(unplannable))
+        finally:
+            if ray is None:
+                pool.terminate()
+                pool.join()
         bar.close()
     if pending or not out.exists():
         consolidate(parts_dir, out, attrs)
     with EpisodeDataset(out) as ds:
         balance = ds.class_balance()
-    balance["new_episodes"] = len(pending)
+    balance["new_episodes"] = len(pending) - len(unplannable)
+    if unplannable:  # no plan for the scene: no episode; a resumed collection tries them again
+        balance["unplannable"] = sorted(unplannable)
     balance["seconds"] = round(time.perf_counter() - started, 1)
     return balance
 

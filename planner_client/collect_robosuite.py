@@ -25,6 +25,7 @@ __all__ = ["CHOICE_STREAM", "RobosuiteCollectConfig", "collect_robosuite", "epis
            "simulate_episode"]
 
 CHOICE_STREAM = 13  # separates the choice draw from the scene and perception streams
+MAX_CHOICE_TRIES = 64  # drawn choices tried per scene before it counts as unplannable
 
 
 @dataclass(frozen=True)
@@ -58,17 +59,19 @@ def planned_choice(planner: RobosuiteTampPlanner, task: str, observation: dict, 
                    ) -> tuple[Choice, object, int]:
     """The episode's choice, its plan and how many drawn choices were unreachable: when the arm cannot reach
     a choice's poses (IK fails), the next one of a permutation drawn from the same seed is taken -- still
-    determined by the seed alone."""
+    determined by the seed alone. After ``MAX_CHOICE_TRIES`` unreachable choices the scene counts as
+    unplannable (IKFailure): pick_place has 3072 choices, and trying them all would take many minutes."""
     choices = planner.choices(task, observation)
     first = episode_choice(seed, choices)
     rng = np.random.default_rng(np.random.SeedSequence([seed, CHOICE_STREAM, 1]))
-    for skipped, choice in enumerate([first, *(choices[i] for i in rng.permutation(len(choices))
-                                               if choices[i] != first)]):
+    tries = [first, *(choices[i] for i in rng.permutation(len(choices)) if choices[i] != first)]
+    for skipped, choice in enumerate(tries[:MAX_CHOICE_TRIES]):
         try:
             return choice, planner.plan(task, observation, choice), skipped
         except IKFailure:
             continue
-    raise IKFailure(f"seed {seed}: no choice of the {task} planner is reachable in this scene")
+    raise IKFailure(f"seed {seed}: none of {min(len(tries), MAX_CHOICE_TRIES)} choices of the {task} planner "
+                    "is reachable in this scene")
 
 
 def simulate_episode(world, planner: RobosuiteTampPlanner, task: str, seed: int, pose_error_mm: float,

@@ -8,7 +8,7 @@
   value is a cluster address (``HOST:PORT`` or ``ray://HOST:PORT``).
 * Each actor runs the world's initializer once (its world, its planner) and then simulates episode
   after episode; it returns the finished :class:`~firp.core.episodes.EpisodeRecord` to the driver,
-  which writes it as one atomic part file. The cluster's nodes need no shared filesystem, only the
+  which writes it as one atomic part file (a scene the planner cannot plan yields none). The cluster's nodes need no shared filesystem, only the
   same installed packages.
 * An actor whose process dies is restarted by Ray and its unfinished calls are retried
   (``max_restarts`` / ``max_task_retries``); the driver writes each index once, so a killed worker
@@ -41,8 +41,14 @@ class EpisodeSimulator:
     def pid(self) -> int:
         return os.getpid()
 
-    def simulate(self, index: int) -> tuple[int, EpisodeRecord]:
-        return index, self._simulate_one(index)
+    def simulate(self, index: int) -> tuple[int, EpisodeRecord | str]:
+        """The episode's record, or why the planner could plan nothing for its scene."""
+        from planner_client.ik import IKFailure
+
+        try:
+            return index, self._simulate_one(index)
+        except IKFailure as exc:
+            return index, str(exc)
 
 
 def connect(address: str, cpus: int):
@@ -64,9 +70,9 @@ def connect(address: str, cpus: int):
 
 def simulate_on_ray(*, address: str, actors: int, pending: list[int], parts_dir, initializer: Callable,
                     initargs: tuple, simulate_one: Callable[[int], EpisodeRecord],
-                    on_actors: Callable[[list], None] | None = None) -> Iterator[tuple[int, bool]]:
+                    on_actors: Callable[[list], None] | None = None) -> Iterator[tuple[int, bool | None]]:
     """Simulate the ``pending`` episode indices on ``actors`` Ray actors; write each one's part file as it
-    arrives and yield ``(index, success)``. ``on_actors`` (tests, tools) receives the actor handles once
+    arrives and yield ``(index, success)`` (``success`` None: the scene was unplannable, nothing written). ``on_actors`` (tests, tools) receives the actor handles once
     they exist. The driver disconnects at the end if it connected here, which stops a private ``local``
     cluster and leaves a joined one running."""
     ray, connected_here = connect(address, actors)
@@ -90,6 +96,9 @@ def simulate_on_ray(*, address: str, actors: int, pending: list[int], parts_dir,
             actor = in_flight.pop(ref)
             index, record = ray.get(ref)
             submit(actor)
+            if isinstance(record, str):  # unplannable scene: no episode
+                yield index, None
+                continue
             write_episode_part(parts_dir, index, record)
             yield index, bool(record.success)
     finally:

@@ -179,7 +179,12 @@ class RobosuiteTampPlanner:
             # of the two hand yaws holding the handle alike, the first one the wrist can turn through
             alternatives = [self._nut_moves(observation, choice, start_yaw, flip) for flip in (0.0, np.pi, -np.pi)]
         elif task == "pick_place":
-            alternatives = [self._pick_place_moves(observation, choice, start_yaw)]
+            # a grasp's hand yaw and the same yaw turned half a turn hold the object alike; near the far bin
+            # the wrist reaches one of them only (its last joint at a limit): the nearest first, then each
+            # object's other yaw in turn
+            moves = self._pick_place_moves(observation, choice, start_yaw)
+            alternatives = [moves] + [[(g, y + (np.pi if k == j else 0.0), r, ry + (np.pi if k == j else 0.0))
+                                       for k, (g, y, r, ry) in enumerate(moves)] for j in range(len(moves))]
         else:
             raise ValueError(f"task: the robosuite planner does not plan {task!r} yet")
         for k, moves in enumerate(alternatives):

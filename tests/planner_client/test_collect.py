@@ -100,3 +100,29 @@ def test_the_sim_workers_old_collect_command_hands_over_to_the_planners(tmp_path
     bad = subprocess.run([sys.executable, "-m", "sim_worker", "collect", "--task", "juggling"], capture_output=True,
                          text=True, timeout=60)
     assert bad.returncode == 2 and "invalid choice: 'juggling'" in bad.stderr
+
+
+
+def _odd_scenes_are_unplannable(index: int):
+    from firp.core.contract import make_plan
+    from firp.core.episodes import EpisodeRecord
+    from planner_client.ik import IKFailure
+
+    if index % 2:
+        raise IKFailure(f"scene {index}: no choice is reachable")
+    t = 24
+    targets = np.tile([0.0, 0.0, 0.0, -1.5, 0.0, 1.5, 0.8, 0.04, 0.04], (t, 1))  # the Panda's ready posture
+    return EpisodeRecord(frames=np.zeros((t, 8, 8, 3), np.uint8), actions=make_plan(np.zeros(t, int), targets),
+                         states=np.zeros((t, 1)), success=index % 4 == 0, attrs={"seed": index})
+
+
+def test_an_unplannable_scene_gives_no_episode_and_the_others_go_on(tmp_path):
+    """A collection worker's step: an unplannable scene (IKFailure) writes nothing and says so (None);
+    the driver lists it in the balance and a resume tries it again (its index has no part file)."""
+    from firp.core.episodes import completed_indices
+    from planner_client import collect as collect_module
+
+    parts = tmp_path / "made-up.h5.parts"
+    collect_module._pool_init(lambda: None, (), _odd_scenes_are_unplannable, parts)
+    assert [collect_module._pool_collect_one(i) for i in range(4)] == [(0, True), (1, None), (2, False), (3, None)]
+    assert completed_indices(tmp_path / "made-up.h5", parts) == {0, 2}
