@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import signal
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -58,15 +59,21 @@ def test_a_killed_ray_worker_costs_a_retry_never_a_lost_or_doubled_episode(tmp_p
     out = tmp_path / "stacking.h5"
     killed: list[int] = []
 
+    parts = out.with_name(out.name + ".parts")
+
     def kill_one(actors) -> None:
-        """SIGKILL the first actor's process while it simulates its first episode."""
+        """SIGKILL the first actor's process as soon as the first episode is written: it still has episodes
+        queued or running then (6 episodes, 2 actors, 2 calls in flight on each)."""
         pid = ray.get(actors[0].pid.remote())
 
-        def kill() -> None:
+        def kill_after_first_episode() -> None:
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and not any(parts.glob("*.h5")):
+                time.sleep(0.01)
             os.kill(pid, signal.SIGKILL)
             killed.append(pid)
 
-        threading.Timer(1.0, kill).start()
+        threading.Thread(target=kill_after_first_episode, daemon=True).start()
 
     balance = collect(CollectConfig(task="stacking", episodes=6, out=out, **TINY), progress=False, ray="local",
                       on_actors=kill_one)
