@@ -72,16 +72,15 @@ def pick_place_misses(final_blocks: dict, scene: dict, kind: str) -> list[str]:
     bin, in another quadrant, or off both bins (the same bounds as robosuite's ``not_in_bin``)."""
     if kind == "unstable":
         return ["unstable"]
+    from planner_client.robosuite_tamp import RobosuiteTampPlanner
+
     bin2, size = np.asarray(scene["bin2"], dtype=float), np.asarray(scene["bin_size"], dtype=float)
     bin1 = np.asarray(scene["bin1"], dtype=float)
     misses = []
     for name, final in final_blocks.items():
         pos = np.asarray(final["position"], dtype=float)
-        target = np.asarray(scene["targets"][name][:2], dtype=float)
-        side = np.sign(target - bin2[:2])
-        low = np.minimum(bin2[:2], bin2[:2] + side * size / 2)
-        inside = bool(np.all(pos[:2] > low) and np.all(pos[:2] < low + size / 2)
-                      and bin2[2] < pos[2] < bin2[2] + 0.1)
+        low, high = RobosuiteTampPlanner.quadrant(scene, name)
+        inside = bool(np.all(pos[:2] > low) and np.all(pos[:2] < high) and bin2[2] < pos[2] < bin2[2] + 0.1)
         if inside:
             continue  # (robosuite's check also wants the hand away from it: the plans end with the hand above)
         if np.all(np.abs(pos[:2] - bin1[:2]) < size / 2):

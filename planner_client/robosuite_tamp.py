@@ -295,17 +295,25 @@ class RobosuiteTampPlanner:
         return moves
 
     @staticmethod
+    def quadrant(scene: dict, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """The (x, y) corners, low and high, of ``name``'s quadrant of the second bin: the bounds robosuite's
+        ``not_in_bin`` checks (its walls and dividers included)."""
+        target = np.asarray(scene["targets"][name], dtype=float)[:2]
+        centre, size = np.asarray(scene["bin2"][:2], dtype=float), np.asarray(scene["bin_size"], dtype=float)
+        low = np.minimum(centre, centre + np.sign(target - centre) * size / 2)
+        return low, low + size / 2
+
+    @staticmethod
     def _place_point(scene: dict, name: str, yaw: float) -> np.ndarray:
         """Where in its quadrant of the second bin an object goes: the quadrant's point nearest the robot's
         base that keeps the object's footprint (at ``yaw``, its own) ``PLACE_MARGIN`` from the quadrant's
         walls. robosuite's targets, the quadrants' centres, lie up to 7 cm beyond a top-down hand's reach
         in the far quadrant."""
-        target = np.asarray(scene["targets"][name], dtype=float)[:2]
-        centre, size = np.asarray(scene["bin2"][:2], dtype=float), np.asarray(scene["bin_size"], dtype=float)
-        side = np.sign(target - centre)  # which quadrant
-        inner = centre + side * BIN_DIVIDER_HALF
-        outer = centre + side * size / 2
-        low, high = np.minimum(inner, outer), np.maximum(inner, outer)
+        low, high = RobosuiteTampPlanner.quadrant(scene, name)
+        # the dividers run along the bin's centre lines: keep clear of the half of them inside the quadrant
+        centre = np.asarray(scene["bin2"][:2], dtype=float)
+        low = np.where(np.isclose(low, centre), low + BIN_DIVIDER_HALF, low)
+        high = np.where(np.isclose(high, centre), high - BIN_DIVIDER_HALF, high)
         hx, hy = scene["objects"][name]["half"][:2]
         if abs(hx - hy) < 0.001:  # round: its radius
             extent = np.array([hx, hy])

@@ -21,14 +21,18 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["TASKS", "TaskSpec", "body_pose", "check_task"]
+__all__ = ["TASKS", "TaskSpec", "body_pose", "check_task", "quat_yaw"]
+
+
+def quat_yaw(quat) -> float:
+    """The rotation about z of MuJoCo's (w, x, y, z) quaternion."""
+    w, x, y, z = quat
+    return float(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
 
 
 def body_pose(env, body_id: int) -> tuple[np.ndarray, float]:
-    """A body's position and yaw about world z (from MuJoCo's w, x, y, z quaternion)."""
-    w, x, y, z = env.sim.data.body_xquat[body_id]
-    return np.array(env.sim.data.body_xpos[body_id], dtype=float), float(np.arctan2(2 * (w * z + x * y),
-                                                                                    1 - 2 * (y * y + z * z)))
+    """A body's position and yaw about world z."""
+    return np.array(env.sim.data.body_xpos[body_id], dtype=float), quat_yaw(env.sim.data.body_xquat[body_id])
 
 
 def _stack_objects(env) -> dict[str, int]:
@@ -85,8 +89,7 @@ def _object_model(env, body: int) -> dict:
     g = geoms[0]
     # the box is in the geom's frame, which robosuite turns about z within the body for some objects (the
     # bread's and the cereal box's by a quarter turn): its extents along the body's axes
-    w, x, y, z = m.geom_quat[g]
-    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    yaw = quat_yaw(m.geom_quat[g])
     rotation = np.abs(np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]))
     half = np.asarray(m.geom_aabb[g][3:], dtype=float)
     centre = np.asarray(m.geom_pos[g]) + np.asarray(m.geom_aabb[g][:3])
