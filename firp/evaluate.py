@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import re
 import statistics
@@ -26,6 +27,7 @@ import numpy as np
 import torch
 
 from firp.core.cli_types import int_in_range
+from firp.core.ray_cluster import ray_session
 from firp.flags import add_loss_flags, add_model_flags, add_training_flags, check_data_flag, recipe_flags, recipe_from
 from firp.data import SequenceData, load_sequences, stratified_split
 from firp.metrics import balanced_accuracy, choose_threshold
@@ -134,31 +136,17 @@ def evaluate_on_ray(address: str, runs: list[tuple[int, str]], base: TrainConfig
     its training as the sequential loop does, so its row equals the sequential run's (but for
     ``train_seconds``). A worker that dies is retried by Ray (``max_retries``); checkpoints stay on
     the node that trained (under ``out`` there). ``local`` starts a private cluster of this machine's
-    CPUs for the run; the driver disconnects at the end if it connected here."""
-    import os
-
-    import ray
-
+    CPUs for the run (:mod:`firp.core.ray_cluster`)."""
     if not runs:
         return
-    connected_here = not ray.is_initialized()
-    if connected_here:
-        options = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
-        if address == "local":
-            ray.init(num_cpus=os.cpu_count(), **options)
-        else:
-            ray.init(address=address, **options)
-    try:
+    with ray_session(address, os.cpu_count() or 1) as ray:
         task = ray.remote(num_cpus=threads, max_retries=3)(_evaluate_task)
         shared = ray.put(data)
-        pending = {task.remote(name, base, shared, repeat, out.resolve() / run_name(repeat, name), threads): (repeat, name)
-                   for repeat, name in runs}
+        pending = {task.remote(name, base, shared, repeat, out.resolve() / run_name(repeat, name), threads):
+                   (repeat, name) for repeat, name in runs}
         while pending:
             (ref,), _ = ray.wait(list(pending), num_returns=1)
             yield pending.pop(ref), ray.get(ref)
-    finally:
-        if connected_here:
-            ray.shutdown()
 
 
 def ensemble_rows(rows: list[dict], labels: np.ndarray, min_members: int = 2) -> list[dict]:

@@ -136,12 +136,20 @@ def _pool_init(initializer, initargs: tuple, simulate_one, parts_dir: Path) -> N
     _pool.update(simulate_one=simulate_one, parts_dir=parts_dir)
 
 
-def _pool_collect_one(index: int) -> tuple[int, bool | None]:
-    """Simulate and write episode ``index``: its success, or None when the planner could plan nothing."""
+def attempt_episode(simulate_one, index: int) -> EpisodeRecord | str:
+    """``simulate_one(index)``'s record, or why the planner could plan nothing for the scene (logged): an
+    unplannable scene gives no episode, on a process pool and on Ray alike."""
     try:
-        record = _pool["simulate_one"](index)
+        return simulate_one(index)
     except IKFailure as exc:
         log.warning("episode %d skipped: %s", index, exc)
+        return str(exc)
+
+
+def _pool_collect_one(index: int) -> tuple[int, bool | None]:
+    """Simulate and write episode ``index``: its success, or None when the planner could plan nothing."""
+    record = attempt_episode(_pool["simulate_one"], index)
+    if isinstance(record, str):
         return index, None
     write_episode_part(_pool["parts_dir"], index, record)
     return index, bool(record.success)

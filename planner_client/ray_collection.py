@@ -4,8 +4,7 @@
 (:func:`planner_client.collect.run_collection`), on Ray instead:
 
 * ``local`` starts a private single-node cluster with ``--workers`` CPUs for the run and stops it
-  after; ``auto`` joins the cluster ``ray start`` made on this machine (or ``RAY_ADDRESS``); any other
-  value is a cluster address (``HOST:PORT`` or ``ray://HOST:PORT``).
+  after; ``auto`` and an address join a cluster (:mod:`firp.core.ray_cluster`).
 * Each actor runs the world's initializer once (its world, its planner) and then simulates episode
   after episode; it returns the finished :class:`~firp.core.episodes.EpisodeRecord` to the driver,
   which writes it as one atomic part file (a scene the planner cannot plan yields none). The cluster's nodes need no shared filesystem, only the
@@ -23,8 +22,10 @@ from collections import deque
 from typing import Callable, Iterator
 
 from firp.core.episodes import EpisodeRecord, write_episode_part
+from firp.core.ray_cluster import ray_session
+from planner_client.collect import attempt_episode
 
-__all__ = ["EpisodeSimulator", "IN_FLIGHT_PER_ACTOR", "connect", "simulate_on_ray"]
+__all__ = ["EpisodeSimulator", "IN_FLIGHT_PER_ACTOR", "simulate_on_ray"]
 
 #: calls queued on each actor: one running, one waiting, so an actor never idles between episodes
 IN_FLIGHT_PER_ACTOR = 2
@@ -43,42 +44,19 @@ class EpisodeSimulator:
 
     def simulate(self, index: int) -> tuple[int, EpisodeRecord | str]:
         """The episode's record, or why the planner could plan nothing for its scene."""
-        from planner_client.ik import IKFailure
-
-        try:
-            return index, self._simulate_one(index)
-        except IKFailure as exc:
-            return index, str(exc)
-
-
-def connect(address: str, cpus: int):
-    """Connect to (``auto`` / an address) or start (``local``) a Ray cluster, unless this process is
-    connected already; returns the ``ray`` module and whether it connected here."""
-    try:
-        import ray
-    except ImportError as exc:  # pragma: no cover - the dev and robosuite extras install it
-        raise RuntimeError("--ray: Ray is not installed in this environment (pip install 'firp[ray]')") from exc
-    if ray.is_initialized():
-        return ray, False
-    options = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
-    if address == "local":
-        ray.init(num_cpus=cpus, **options)
-    else:
-        ray.init(address=address, **options)
-    return ray, True
+        return index, attempt_episode(self._simulate_one, index)
 
 
 def simulate_on_ray(*, address: str, actors: int, pending: list[int], parts_dir, initializer: Callable,
                     initargs: tuple, simulate_one: Callable[[int], EpisodeRecord],
                     on_actors: Callable[[list], None] | None = None) -> Iterator[tuple[int, bool | None]]:
     """Simulate the ``pending`` episode indices on ``actors`` Ray actors; write each one's part file as it
-    arrives and yield ``(index, success)`` (``success`` None: the scene was unplannable, nothing written). ``on_actors`` (tests, tools) receives the actor handles once
-    they exist. The driver disconnects at the end if it connected here, which stops a private ``local``
-    cluster and leaves a joined one running."""
-    ray, connected_here = connect(address, actors)
-    try:
+    arrives and yield ``(index, success)`` (``success`` None: the scene was unplannable, nothing
+    written). ``on_actors`` (tests, tools) receives the actor handles once they exist."""
+    with ray_session(address, actors) as ray:
         remote = ray.remote(num_cpus=1, max_restarts=-1, max_task_retries=-1)(EpisodeSimulator)
-        handles = [remote.remote(initializer, initargs, simulate_one) for _ in range(max(1, min(actors, len(pending))))]
+        handles = [remote.remote(initializer, initargs, simulate_one)
+                   for _ in range(max(1, min(actors, len(pending))))]
         if on_actors is not None:
             on_actors(handles)
         queue = deque(pending)
@@ -101,6 +79,3 @@ def simulate_on_ray(*, address: str, actors: int, pending: list[int], parts_dir,
                 continue
             write_episode_part(parts_dir, index, record)
             yield index, bool(record.success)
-    finally:
-        if connected_here:  # a private cluster stops with its driver; a joined one is only disconnected from
-            ray.shutdown()
