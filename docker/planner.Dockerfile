@@ -5,12 +5,14 @@
 # Build arguments (compose passes them from FIRP_* variables, see docker-compose.yml):
 #   BASE_IMAGE       any Debian-like image with python3 (3.11) and its venv module; default python:3.11-slim
 #   PIP_NO_INDEX=1   install from docker/wheels only (an offline build, docker/wheels/README.md)
+#   EXTRAS           the extras installed (default planner; compose's Ray services build planner,ray)
 ARG BASE_IMAGE=python:3.11-slim
 
 # --- build: a virtualenv with the planner's dependencies (the wheels stay in this stage) ---
 FROM ${BASE_IMAGE} AS build
 ARG PIP_NO_INDEX
 ARG PIP_FIND_LINKS=/wheels
+ARG EXTRAS=planner
 ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 PATH=/opt/venv/bin:$PATH
 RUN python3 -m venv /opt/venv
 WORKDIR /app
@@ -21,7 +23,7 @@ COPY firp_cli ./firp_cli
 COPY world_api ./world_api
 COPY sim_worker ./sim_worker
 COPY planner_client ./planner_client
-RUN pip install -e ".[planner]"
+RUN pip install -e ".[$EXTRAS]"
 
 # --- runtime: the GL libraries MuJoCo's renderer loads by name (the Makefile's APT list) ---
 FROM ${BASE_IMAGE}

@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # The compose smoke run: build the three images, bring up `service` and `sim_worker` with the real
 # docker-compose client, wait until both are healthy, run three trials of the main job in the planner
-# container, check the records and the summary, compare the scores with the same trials run without
-# containers, and tear everything down. Every failure names its step.
+# container, check the records and the summary, run them again on three sim worker replicas (profile
+# `replicas`), collect four episodes on a Ray cluster of a head and two workers (profile `ray`), compare
+# the scores, picks and outcomes with the same trials run without containers and the episodes with the
+# same collection without containers, and tear everything down. Every failure names its step.
 #
 #   bash scripts/compose_smoke.sh              # podman here (no Docker engine), Docker where one runs
 #   FIRP_SMOKE_ENGINE=docker bash scripts/compose_smoke.sh
@@ -64,7 +66,7 @@ HEALTH_PID=""
 teardown() {
     STEP="teardown"
     if [ -n "${COMPOSE[*]:-}" ]; then
-        "${COMPOSE[@]}" --profile planner down -v --remove-orphans >"$LOGS/down.log" 2>&1 || \
+        "${COMPOSE[@]}" "${PROFILES[@]}" down -v --remove-orphans >"$LOGS/down.log" 2>&1 || \
             echo "compose smoke: teardown: compose down failed (see $LOGS/down.log)" >&2
     fi
     [ -n "$HEALTH_PID" ] && kill "$HEALTH_PID" 2>/dev/null || true
@@ -77,6 +79,7 @@ teardown() {
     fi
 }
 COMPOSE=()
+PROFILES=(--profile planner --profile replicas --profile ray)
 trap on_exit EXIT
 trap 'exit 130' INT TERM  # an interrupted run tears down too
 
@@ -116,7 +119,7 @@ else
     inspect() { docker "$@"; }
 fi
 COMPOSE=(docker-compose -f "$ROOT/docker-compose.yml")
-"${COMPOSE[@]}" --profile planner down -v --remove-orphans >"$LOGS/down-before.log" 2>&1 || true
+"${COMPOSE[@]}" "${PROFILES[@]}" down -v --remove-orphans >"$LOGS/down-before.log" 2>&1 || true
 
 step "base image"
 if [ "$ENGINE" = podman ] && [ -z "${FIRP_BASE_IMAGE:-}" ]; then
@@ -135,19 +138,20 @@ echo "   base: ${FIRP_BASE_IMAGE:-python:3.11-slim}"
 
 step "wheels (pip download into docker/wheels)"
 # The images' every dependency, resolved here as `make install` resolves them (torch: the CPU build).
-"$ROOT/.venv/bin/pip" download -q -d "$ROOT/docker/wheels" setuptools wheel "torch==2.13.0" ".[service,sim,planner]" \
+"$ROOT/.venv/bin/pip" download -q -d "$ROOT/docker/wheels" setuptools wheel "torch==2.13.0" ".[service,sim,planner,ray]" \
     >"$LOGS/pip-download.log" 2>&1 || fail "pip download (see $LOGS/pip-download.log)"
 ls "$ROOT/docker/wheels" | grep -q '^torch-2\.13\.0+cpu-' || fail "docker/wheels has no CPU build of torch 2.13.0"
 ls "$ROOT/docker/wheels" | grep -q '^nvidia' && fail "docker/wheels holds CUDA wheels (nvidia-*)"
 export FIRP_PIP_NO_INDEX=1
 
 declare -A BUILD_S SIZE_MB READY_S STOP_S EXIT_CODE
-for name in service sim_worker planner; do
+declare -A IMAGE=([service]=firp-service [sim_worker]=firp-sim-worker [planner]=firp-planner [ray_head]=firp-planner-ray)
+for name in service sim_worker planner ray_head; do
     step "build $name"
     start=$SECONDS
-    "${COMPOSE[@]}" --profile planner build "$name" >"$LOGS/build-$name.log" 2>&1 || fail "compose build $name (see $LOGS/build-$name.log)"
+    "${COMPOSE[@]}" "${PROFILES[@]}" build "$name" >"$LOGS/build-$name.log" 2>&1 || fail "compose build $name (see $LOGS/build-$name.log)"
     BUILD_S[$name]=$((SECONDS - start))
-    image="firp-${name//_/-}:$FIRP_IMAGE_TAG"
+    image="${IMAGE[$name]}:$FIRP_IMAGE_TAG"
     bytes=$(inspect image inspect --format '{{.Size}}' "$image") || fail "no image $image after the build"
     SIZE_MB[$name]=$((bytes / 1000000))
     echo "   $image: ${SIZE_MB[$name]} MB in ${BUILD_S[$name]} s"
@@ -174,7 +178,7 @@ step "up service sim_worker"
 if [ "$ENGINE" = podman ]; then
     # podman without systemd never runs health checks on its own: run them, as the engine would.
     ( while true; do
-        for id in $("${COMPOSE[@]}" ps -q service sim_worker 2>/dev/null); do podman healthcheck run "$id" >/dev/null 2>&1 || true; done
+        for id in $("${COMPOSE[@]}" "${PROFILES[@]}" ps -q 2>/dev/null); do podman healthcheck run "$id" >/dev/null 2>&1 || true; done
         sleep 2
       done ) >/dev/null 2>&1 &
     HEALTH_PID=$!
@@ -209,10 +213,35 @@ tail -n 25 "$LOGS/planner.log" | sed 's/^/   /'
 
 step "fetch the records"
 rm -rf "$WORK/container-run" && mkdir -p "$WORK/container-run"
-for file in smoke.jsonl smoke.summary.json smoke.summary.md; do
-    "${COMPOSE[@]}" --profile planner run --rm -T --no-deps --entrypoint cat planner "/app/runs/$file" \
-        >"$WORK/container-run/$file" 2>"$LOGS/fetch.log" || fail "no /app/runs/$file in the planner's volume"
+fetch_run() {  # fetch_run FILE...: trial records out of the planner's volume
+    for file in "$@"; do
+        "${COMPOSE[@]}" "${PROFILES[@]}" run --rm -T --no-deps --entrypoint cat planner "/app/runs/$file" \
+            >"$WORK/container-run/$file" 2>"$LOGS/fetch.log" || fail "no /app/runs/$file in the planner's volume"
+    done
+}
+fetch_run smoke.jsonl smoke.summary.json smoke.summary.md
+
+step "replicas: up sim_worker_2 sim_worker_3"
+"${COMPOSE[@]}" --profile replicas up -d sim_worker_2 sim_worker_3 >"$LOGS/up-replicas.log" 2>&1 \
+    || fail "compose up -d sim_worker_2 sim_worker_3 (see $LOGS/up-replicas.log)"
+deadline=$((SECONDS + ${FIRP_SMOKE_READY_TIMEOUT:-300}))
+for name in sim_worker_2 sim_worker_3; do
+    id=$("${COMPOSE[@]}" --profile replicas ps -q "$name")
+    until [ "$(inspect inspect --format '{{.State.Health.Status}}' "$id")" = healthy ]; do
+        [ $SECONDS -lt $deadline ] || { "${COMPOSE[@]}" --profile replicas logs "$name" >"$LOGS/$name.log" 2>&1; fail "$name never turned healthy (see $LOGS/$name.log)"; }
+        sleep 0.5
+    done
 done
+echo "   three sim workers healthy"
+
+step "replicas: planner_replicas run --trials $TRIALS"
+start=$SECONDS
+"${COMPOSE[@]}" --profile replicas run --rm -T planner_replicas run --trials "$TRIALS" --out /app/runs/replicas.jsonl \
+    >"$LOGS/planner-replicas.log" 2>&1 || fail "compose run planner_replicas (see $LOGS/planner-replicas.log)"
+REPLICAS_S=$((SECONDS - start))
+fetch_run replicas.jsonl
+"${COMPOSE[@]}" --profile replicas stop sim_worker_2 sim_worker_3 >>"$LOGS/stop.log" 2>&1 || fail "compose stop the replicas"
+echo "   $TRIALS trials on three workers in $REPLICAS_S s"
 
 step "stop (drain)"
 for name in service sim_worker; do
@@ -227,17 +256,37 @@ done
 teardown
 COMPOSE=()
 
+step "ray: a collection on a head and two workers"
+RAY_EPISODES=4
+start=$SECONDS
+FIRP_RAY_EPISODES=$RAY_EPISODES FIRP_RAY_ACTORS=2 FIRP_RAY_WORKER_CPUS=1 \
+    "${COMPOSE[@]}" --profile ray up --scale ray_worker=2 --exit-code-from ray_head ray_head ray_worker \
+    >"$LOGS/ray.log" 2>&1 || fail "compose --profile ray up (see $LOGS/ray.log)"
+RAY_S=$((SECONDS - start))
+"${COMPOSE[@]}" --profile ray run --rm -T --no-deps --entrypoint cat ray_head /app/data/stacking.h5 \
+    >"$WORK/container-run/ray-stacking.h5" 2>"$LOGS/fetch-ray.log" || fail "no /app/data/stacking.h5 in the volume ray-data"
+nodes=$(grep -c "Ray runtime started\|Ray runtime started." "$LOGS/ray.log" || true)
+echo "   $RAY_EPISODES episodes in $RAY_S s ($nodes Ray nodes started)"
+"${COMPOSE[@]}" "${PROFILES[@]}" down -v --remove-orphans >>"$LOGS/down.log" 2>&1 || true
+
 step "the same trials without containers"
 rm -f "$WORK/host.jsonl"
 "$ROOT/.venv/bin/firp" run --trials "$TRIALS" --out "$WORK/host.jsonl" >"$LOGS/host-run.log" 2>&1 \
     || fail "firp run --trials $TRIALS (see $LOGS/host-run.log)"
+
+step "the same episodes without containers"
+rm -f "$WORK/host-stacking.h5"
+"$ROOT/.venv/bin/firp" collect --task stacking --episodes "$RAY_EPISODES" --workers 2 --no-progress \
+    --out "$WORK/host-stacking.h5" >"$LOGS/host-collect.log" 2>&1 || fail "firp collect (see $LOGS/host-collect.log)"
 
 step "compare"
 sizes=""; for n in service sim_worker planner; do sizes+="$n=${SIZE_MB[$n]}:${BUILD_S[$n]} "; done
 ready=""; for n in service sim_worker; do ready+="$n=${READY_S[$n]}:${STOP_S[$n]}:${EXIT_CODE[$n]} "; done
 "$PY" "$ROOT/scripts/compose_smoke_report.py" --container "$WORK/container-run/smoke.jsonl" --host "$WORK/host.jsonl" \
     --trials "$TRIALS" --engine "$ENGINE" --base "${FIRP_BASE_IMAGE:-python:3.11-slim}" --images $sizes --servers $ready \
-    --planner-seconds "$PLANNER_S" --seconds $((SECONDS - T0)) --out "$WORK" || fail "the container run differs from the run without containers"
+    --planner-seconds "$PLANNER_S" --replicas "$WORK/container-run/replicas.jsonl" --replicas-seconds "$REPLICAS_S" \
+    --ray-dataset "$WORK/container-run/ray-stacking.h5" --host-dataset "$WORK/host-stacking.h5" --ray-seconds "$RAY_S" \
+    --seconds $((SECONDS - T0)) --out "$WORK" || fail "the container runs differ from the runs without containers"
 if [ -n "$RESULTS" ]; then mkdir -p "$RESULTS" && cp "$WORK/report.json" "$WORK/report.md" "$RESULTS/"; fi
 STEP="done"
 echo "compose smoke: OK in $((SECONDS - T0)) s (report: $WORK/report.md)"

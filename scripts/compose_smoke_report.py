@@ -1,5 +1,6 @@
 """The compose smoke run's last step: compare the trials run in containers with the same trials run
-without them, and write what the run measured (report.json, report.md).
+without them (and on three sim worker replicas), the episodes a Ray cluster of containers collected
+with the same collection without containers, and write what the run measured (report.json, report.md).
 
 The comparison is strict on everything discrete (seeds, the bundle, every plan picked and every
 outcome) and allows the scores a tolerance of 1e-6: the images install the same pinned wheels, so
@@ -52,6 +53,25 @@ def compare(container: list[dict], host: list[dict], trials: int) -> tuple[list[
     return problems, largest
 
 
+def compare_datasets(ray: Path, host: Path) -> tuple[list[str], dict]:
+    """The differences between two collections of the same episodes (empty: bit-identical content), and
+    what the Ray one holds."""
+    from firp.core.episodes import EpisodeDataset
+
+    for path in (ray, host):
+        if not path.is_file():
+            return [f"no dataset at {path}"], {}
+    with EpisodeDataset(ray) as a, EpisodeDataset(host) as b:
+        facts = {"episodes": len(a), "successes": int(a.success_labels().sum()), "content_hash": a.content_hash()}
+        problems = []
+        if len(a) != len(b):
+            problems.append(f"the Ray collection has {len(a)} episodes, the one without containers {len(b)}")
+        elif a.content_hash() != b.content_hash():
+            problems.append(f"the Ray collection's content {a.content_hash()[:12]} differs from the one without "
+                            f"containers {b.content_hash()[:12]}")
+    return problems, facts
+
+
 def parse_pairs(items: list[str]) -> dict[str, list[str]]:
     """``name=a:b:c`` items as {name: [a, b, c]}."""
     return {item.split("=", 1)[0]: item.split("=", 1)[1].split(":") for item in items}
@@ -67,6 +87,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--images", nargs="+", default=[], help="name=size_mb:build_s")
     parser.add_argument("--servers", nargs="+", default=[], help="name=ready_s:stop_s:exit_code")
     parser.add_argument("--planner-seconds", type=int, required=True, help="the planner container's run, start to exit")
+    parser.add_argument("--replicas", type=Path, help="trial records of the same trials on three sim worker replicas")
+    parser.add_argument("--replicas-seconds", type=int, help="the replicas' planner run, start to exit")
+    parser.add_argument("--ray-dataset", type=Path, help="the episodes the Ray profile collected")
+    parser.add_argument("--host-dataset", type=Path, help="the same episodes collected without containers")
+    parser.add_argument("--ray-seconds", type=int, help="the Ray profile's run, up to exit")
     parser.add_argument("--seconds", type=int, required=True, help="the smoke run's wall time so far")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
@@ -77,6 +102,15 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     container, host = read_records(args.container), read_records(args.host)
     problems, largest = compare(container, host, args.trials)
+    if args.replicas is not None:  # one trial per worker at a time: every record as the one worker's
+        replica_problems, replica_largest = compare(read_records(args.replicas), container, args.trials)
+        problems += [f"replicas: {p}" for p in replica_problems]
+        largest = max(largest, replica_largest)
+    ray = {}
+    if args.ray_dataset is not None:
+        ray_problems, ray = compare_datasets(args.ray_dataset, args.host_dataset)
+        problems += [f"ray: {p}" for p in ray_problems]
+        ray["seconds"] = args.ray_seconds
 
     images = {name: {"size_mb": int(v[0]), "build_s": int(v[1])} for name, v in parse_pairs(args.images).items()}
     servers = {name: {"ready_s": float(v[0]), "stop_s": int(v[1]), "exit_code": int(v[2])}
@@ -88,6 +122,8 @@ def main(argv: list[str] | None = None) -> int:
         "scores_compared": sum(len(r.get("candidate_scores") or {}) for r in container),
         "largest_score_difference": largest, "score_tolerance": SCORE_TOLERANCE,
         "firp_successes": [r["firp_success"] for r in container], "equal": not problems, "differences": problems,
+        "replicas": None if args.replicas is None else {"workers": 3, "planner_run_s": args.replicas_seconds},
+        "ray": ray or None,
     }
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
@@ -101,6 +137,13 @@ def main(argv: list[str] | None = None) -> int:
               "", f"{args.trials} trials, {report['scores_compared']} plan scores compared with the same trials run "
               f"without containers: largest difference {largest:.3g} (tolerance {SCORE_TOLERANCE:g}); "
               f"{'equal' if not problems else 'DIFFERENT'}. Wall time {args.seconds} s."]
+    if args.replicas is not None:
+        lines += ["", f"The same {args.trials} trials on three sim worker replicas (`--profile replicas`, "
+                  f"`planner_replicas`): {args.replicas_seconds} s, every record compared with the one-worker run's."]
+    if ray:
+        lines += ["", f"`--profile ray` (a head and two workers, one actor each): {ray.get('episodes')} episodes "
+                  f"({ray.get('successes')} successes) in {ray['seconds']} s, content {ray.get('content_hash', '')[:12]}, "
+                  "compared with the same collection without containers."]
     lines += [f"- {problem}" for problem in problems]
     (args.out / "report.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

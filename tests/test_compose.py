@@ -52,17 +52,29 @@ def _build_args(name: str) -> dict[str, str | None]:
     return {m.group(1): m.group(2) for m in re.finditer(r"^ARG (\w+)(?:=(\S+))?$", _dockerfile(name), re.M)}
 
 
+#: the services beyond the four parts: replicas of a part (same build), and the Ray cluster's nodes
+REPLICAS = {"sim_worker_2": "sim_worker", "sim_worker_3": "sim_worker", "planner_replicas": "planner"}
+RAY = ("ray_head", "ray_worker")
+
+
 def test_services_build_from_the_dockerfiles(compose):
-    assert set(compose["services"]) == set(DOCKERFILES)
+    assert set(compose["services"]) == set(DOCKERFILES) | set(REPLICAS) | set(RAY)
     for name, service in compose["services"].items():
+        if name == "ray_worker":  # runs the image ray_head builds
+            assert service["image"] == compose["services"]["ray_head"]["image"] and "build" not in service
+            continue
+        part = "planner" if name == "ray_head" else REPLICAS.get(name, name)
         build = service["build"]
-        assert (build["context"], build["dockerfile"]) == (".", DOCKERFILES[name])
-        assert (ROOT / DOCKERFILES[name]).is_file()
+        assert (build["context"], build["dockerfile"]) == (".", DOCKERFILES[part])
+        assert (ROOT / DOCKERFILES[part]).is_file()
         # every build argument compose passes is one the Dockerfile declares, each from a FIRP_* variable
-        assert set(build["args"]) <= set(_build_args(name)), (name, set(build["args"]) - set(_build_args(name)))
+        assert set(build["args"]) <= set(_build_args(part)), (name, set(build["args"]) - set(_build_args(part)))
         assert {"BASE_IMAGE", "PIP_NO_INDEX"} <= set(build["args"])
-        assert all(str(v).startswith("${FIRP_") for v in build["args"].values())
-        assert service["image"] == f"firp-{name.replace('_', '-')}:${{FIRP_IMAGE_TAG:-latest}}"
+        fixed = {"EXTRAS": "planner,ray"} if name == "ray_head" else {}
+        assert all(str(v).startswith("${FIRP_") for k, v in build["args"].items() if k not in fixed)
+        assert {k: build["args"][k] for k in fixed} == fixed
+        image = f"firp-{part.replace('_', '-')}{'-ray' if name == 'ray_head' else ''}:${{FIRP_IMAGE_TAG:-latest}}"
+        assert service["image"] == image
 
 
 @pytest.mark.parametrize("name", list(DOCKERFILES))
@@ -126,7 +138,8 @@ def test_compose_sets_only_variables_the_settings_read(compose):
     from robosuite_worker.settings import RobosuiteSettings
 
     settings = {"service": ServiceSettings, "sim_worker": SimWorkerSettings, "planner": PlannerSettings,
-                "robosuite_worker": RobosuiteSettings}
+                "robosuite_worker": RobosuiteSettings, "sim_worker_2": SimWorkerSettings,
+                "sim_worker_3": SimWorkerSettings, "planner_replicas": PlannerSettings}
     for name, cls in settings.items():
         prefix = cls.model_config["env_prefix"]
         known = {prefix + field.upper() for field in cls.model_fields}
@@ -157,6 +170,9 @@ def test_images_are_slim_and_run_as_a_non_root_user(compose, name):
                                         ("planner", "planner")])
 def test_images_install_like_the_readme(name, extra):
     steps = " && ".join(_run_steps(name))
+    for arg, default in _build_args(name).items():  # a build argument's default is what a plain build runs
+        if default is not None and arg != "TORCH_INDEX_URL":
+            steps = steps.replace(f"${arg}", default)
     readme = (ROOT / "README.md").read_text()
     install = f'pip install -e ".[{extra}]"'
     assert install in steps and install in readme
@@ -200,3 +216,49 @@ def test_each_drain_ends_before_composes_sigkill(compose, name, variable):
     grace = float(service["environment"].get(variable, settings.model_fields["drain_grace_s"].default))
     stop = _seconds(service.get("stop_grace_period", "10s"))
     assert grace + 5 <= stop, f"{name}: drain {grace} s + 5 s of shutdown > stop_grace_period {stop} s"
+
+
+def test_replicas_are_sim_workers_each_reached_by_name(compose):
+    """Three workers behind one scoring service: each replica is the sim worker's service under its own name
+    (a trial's calls must reach the worker holding its episode, so no `--scale` behind one DNS name), with no
+    host port of its own; the replicas' planner lists every worker and starts when all are healthy."""
+    services = compose["services"]
+    workers = ["sim_worker", "sim_worker_2", "sim_worker_3"]
+    for name in workers[1:]:
+        replica = services[name]
+        assert replica["profiles"] == ["replicas"] and replica["ports"] == []
+        for key in ("image", "build", "environment", "healthcheck", "user", "stop_grace_period"):
+            assert replica[key] == services["sim_worker"][key], (name, key)
+    planner = services["planner_replicas"]
+    assert planner["profiles"] == ["replicas"] and planner["command"] == services["planner"]["command"]
+    port = _port(compose, "sim_worker")
+    assert planner["environment"]["FIRP_PLANNER_SIM_URL"].split(",") == [f"http://{w}:{port}" for w in workers]
+    assert planner["depends_on"] == {name: {"condition": "service_healthy"} for name in ["service", *workers]}
+
+    from planner_client.session import ServicePlan
+
+    assert ServicePlan(task="stacking", out_dir=ROOT, sim_url=planner["environment"]["FIRP_PLANNER_SIM_URL"],
+                       service_url=planner["environment"]["FIRP_PLANNER_SERVICE_URL"]).sim_urls == \
+        [f"http://{w}:{port}" for w in workers]  # how `firp run` reads the variable
+
+
+def test_the_ray_profile_runs_a_collection_on_a_head_and_workers(compose):
+    """ray_head starts the cluster's head without CPUs of its own and runs `firp collect --ray auto` on it
+    (Ray's drivers run on a node of their cluster) with the command's arguments; ray_worker joins it by name."""
+    head, worker = compose["services"]["ray_head"], compose["services"]["ray_worker"]
+    assert head["profiles"] == worker["profiles"] == ["ray"]
+    script = head["entrypoint"][2]
+    assert head["entrypoint"][:2] == ["sh", "-c"]
+    start, collect = script.split(" && exec ")
+    assert start.startswith("ray start --head --port=6379 ") and "--num-cpus=0" in start
+    assert collect == 'firp collect --ray auto "$$0" "$$@"'  # compose's $$ is the shell's $
+    assert worker["entrypoint"] == ["ray"] and worker["command"][:2] == ["start", "--address=ray_head:6379"]
+    assert "--block" in worker["command"]
+    assert any(v.startswith("ray-data:/app/data") for v in head["volumes"])
+    # the arguments are a valid `firp collect` command line
+    from planner_client.__main__ import build_parser
+
+    command = [re.sub(r"\$\{FIRP_\w+:-(\w+)\}", r"\1", str(a)) for a in head["command"]]
+    args = build_parser("firp").parse_args(["collect", *command])
+    assert args.out == Path("/app/data/stacking.h5") and (args.task, args.episodes, args.workers) == ("stacking", 640, 4)
+    assert "ray==" in (ROOT / "pyproject.toml").read_text()

@@ -82,3 +82,32 @@ def test_main_writes_the_report_and_fails_on_a_difference(tmp_path, runs):
     _write(tmp_path / "smoke.jsonl", container)
     assert report.main(args) == 1
     assert json.loads((tmp_path / "out" / "report.json").read_text())["differences"] == ["trial 0: tamp_success True != False"]
+
+
+def _collection(folder: Path, episodes: int, changed_pixel: bool = False) -> Path:
+    """A tiny collection (T = 8, 16 px) of ``episodes`` episodes; ``changed_pixel`` alters one pixel of the last."""
+    import numpy as np
+
+    from firp.core.contract import make_plan
+    from firp.core.episodes import EpisodeRecord, consolidate, write_episode_part
+
+    rng = np.random.default_rng(0)
+    for i in range(episodes):
+        frames = rng.integers(0, 255, (8, 16, 16, 3), dtype=np.uint8)
+        if changed_pixel and i == episodes - 1:
+            frames[7, 15, 15, 0] ^= 1
+        plan = make_plan(np.arange(8) % 7, np.tile([0, 0, 0, -1.5, 0, 1.5, 0, 0.02, 0.02], (8, 1))).astype(np.float32)
+        write_episode_part(folder / "parts", i, EpisodeRecord(frames, plan, np.zeros((8, 3)), bool(i % 2), {"seed": i}))
+    consolidate(folder / "parts", folder / "d.h5", {"fps": 4, "T": 8, "task": "stacking"})
+    return folder / "d.h5"
+
+
+def test_the_ray_collection_must_equal_the_one_without_containers(tmp_path):
+    same = [_collection(tmp_path / name, 3) for name in ("ray", "host")]
+    problems, facts = report.compare_datasets(*same)
+    assert problems == [] and (facts["episodes"], facts["successes"]) == (3, 1)
+    pixel = _collection(tmp_path / "pixel", 3, changed_pixel=True)
+    assert "differs" in report.compare_datasets(pixel, same[1])[0][0]  # one pixel of one frame
+    shorter = _collection(tmp_path / "shorter", 2)
+    assert "2 episodes" in report.compare_datasets(shorter, same[1])[0][0]
+    assert "no dataset" in report.compare_datasets(tmp_path / "missing.h5", same[1])[0][0]
