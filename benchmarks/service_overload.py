@@ -4,8 +4,10 @@ Starts ``python -m service`` on loopback with the given bundle (the admission se
 then:
 
 * **overload** -- ``--clients`` keep-alive clients each post ``/v1/score/batch`` with ``--batch``
-  plans back to back for ``--seconds``; a refused client (503) waits its ``Retry-After``, as the
-  planner client does. A prober polls ``/readyz`` every 50 ms throughout. Reported: accepted
+  plans back to back for ``--seconds``; a refused client (503) waits as the planner client does
+  (its ``Retry-After``, stretched by up to half by the client's jitter). A prober polls ``/readyz`` every 50 ms throughout. The clients are coroutines
+  spread over ``--client-processes`` processes and the prober runs in its own, so that a client's
+  time is not spent waiting for another client's turn at its interpreter. Reported: accepted
   requests (200) p50 / p99 latency, refused requests (503 ``overloaded``) p50 / p99 latency and
   whether each carried ``Retry-After``, any other status or transport error, ``/readyz`` p99, plans/s.
 * **server side** -- the service runs with JSON request logs; each request's latency as the service
@@ -43,77 +45,101 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from service_latency import ROOT, Server, fail, free_port, pct, png_b64, random_plans  # noqa: E402
 
+from planner_client.transport import RetryPolicy  # noqa: E402
+
 TARGETS = {"accepted_p99_ms": 500.0, "refused_p99_ms": 20.0, "readyz_p99_ms": 50.0, "swap_failed_requests": 0,
            "swap_new_version_s": 10.0}
 
 
-def probe_readyz(base: str, stop: threading.Event, out: list[float]) -> None:
+def probe_readyz(base: str, seconds: float, out) -> None:  # noqa: ANN001 - a multiprocessing queue
+    """``GET /readyz`` every 50 ms for ``seconds``; the latencies (ms) go to ``out``. Run in a process of
+    its own, so the clients' threads do not delay it on its side."""
+    probes = []
+    stop_at = time.monotonic() + seconds
     with httpx.Client(base_url=base, timeout=10) as client:
-        while not stop.is_set():
+        while time.monotonic() < stop_at:
             start = time.perf_counter()
             client.get("/readyz")
-            out.append((time.perf_counter() - start) * 1000.0)
-            stop.wait(0.05)
+            probes.append((time.perf_counter() - start) * 1000.0)
+            time.sleep(0.05)
+    out.put(probes)
 
 
-def overload(base: str, image: str, plans: list, clients: int, seconds: float) -> dict[str, Any]:
+def client_process(base: str, body: bytes, clients: int, seconds: float, start_at: float, out) -> None:  # noqa: ANN001
+    """``clients`` keep-alive clients posting ``body`` to /v1/score/batch back to back until ``start_at +
+    seconds`` (``time.time()``); a refused one waits its Retry-After. Results go to ``out``. The clients
+    are coroutines of one event loop, not threads: a thread that got its answer would wait for the
+    interpreter's lock behind its siblings, and time that wait as the service's latency."""
+    import asyncio
+
     accepted: list[float] = []
     refused: list[float] = []
-    without_retry_after: list[int] = []
+    without_retry_after = 0
     other: list[str] = []
-    lock = threading.Lock()
-    stop_at = time.monotonic() + seconds
-    barrier = threading.Barrier(clients + 1)
-    # encoded once: 64 client threads re-encoding 30k floats per request would load the 2 cores more
-    # than the service does, and time the clients' GIL instead of the service
-    body = json.dumps({"image": image, "plans": plans}).encode()
     headers = {"content-type": "application/json"}
 
-    def worker() -> None:
-        with httpx.Client(base_url=base, timeout=60) as client:
-            barrier.wait()
-            while time.monotonic() < stop_at:
+    async def client() -> None:
+        nonlocal without_retry_after
+        async with httpx.AsyncClient(base_url=base, timeout=60) as http:
+            await asyncio.sleep(max(0.0, start_at - time.time()))
+            while time.time() < start_at + seconds:
                 start = time.perf_counter()
                 try:
-                    r = client.post("/v1/score/batch", content=body, headers=headers)
+                    r = await http.post("/v1/score/batch", content=body, headers=headers)
                 except httpx.HTTPError as exc:
-                    with lock:
-                        other.append(repr(exc))
+                    other.append(repr(exc))
                     continue
                 ms = (time.perf_counter() - start) * 1000.0
-                with lock:
-                    if r.status_code == 200:
-                        accepted.append(ms)
-                    elif r.status_code == 503 and r.json()["error"]["rule"] == "overloaded":
-                        refused.append(ms)
-                        if "retry-after" not in r.headers:
-                            without_retry_after.append(1)
-                    else:
-                        other.append(f"{r.status_code}: {r.text[:200]}")
-                if r.status_code == 503:
-                    time.sleep(float(r.headers.get("retry-after", "1")))
+                if r.status_code == 200:
+                    accepted.append(ms)
+                elif r.status_code == 503 and r.json()["error"]["rule"] == "overloaded":
+                    refused.append(ms)
+                    without_retry_after += "retry-after" not in r.headers
+                else:
+                    other.append(f"{r.status_code}: {r.text[:200]}")
+                if r.status_code == 503:  # as the planner client waits: Retry-After, stretched by its jitter
+                    await asyncio.sleep(RetryPolicy().wait(1, float(r.headers.get("retry-after", "1"))))
 
-    probes: list[float] = []
-    stop = threading.Event()
-    prober = threading.Thread(target=probe_readyz, args=(base, stop, probes))
-    threads = [threading.Thread(target=worker) for _ in range(clients)]
-    for t in threads:
-        t.start()
-    barrier.wait()
-    start = time.monotonic()
-    prober.start()
-    for t in threads:
-        t.join()
-    wall = time.monotonic() - start
-    stop.set()
-    prober.join()
-    return {"clients": clients, "batch": len(plans), "seconds": round(wall, 2),
+    async def everyone() -> None:
+        await asyncio.gather(*(client() for _ in range(clients)))
+
+    asyncio.run(everyone())
+    out.put({"accepted": accepted, "refused": refused, "without_retry_after": without_retry_after, "other": other})
+
+
+def overload(base: str, image: str, plans: list, clients: int, seconds: float, processes: int) -> dict[str, Any]:
+    """``clients`` clients in ``processes`` processes, and the /readyz prober in one more: a load generator
+    whose own threads share as little as possible (Python's GIL) with what they time."""
+    import multiprocessing
+
+    # encoded once: client threads re-encoding 30k floats per request would load the 2 cores more than
+    # the service does, and time the clients' GIL instead of the service
+    body = json.dumps({"image": image, "plans": plans}).encode()
+    context = multiprocessing.get_context("spawn")
+    out = context.Queue()
+    start_at = time.time() + 3.0  # every process started and connected
+    shares = [clients // processes + (1 if k < clients % processes else 0) for k in range(processes)]
+    workers = [context.Process(target=client_process, args=(base, body, n, seconds, start_at, out))
+               for n in shares if n]
+    prober = context.Process(target=probe_readyz, args=(base, seconds + 3.0, out))
+    for proc in (*workers, prober):
+        proc.start()
+    results = [out.get(timeout=seconds + 120) for _ in range(len(workers) + 1)]
+    for proc in (*workers, prober):
+        proc.join(timeout=30)
+    probes = next(r for r in results if isinstance(r, list))
+    parts = [r for r in results if isinstance(r, dict)]
+    accepted = [ms for r in parts for ms in r["accepted"]]
+    refused = [ms for r in parts for ms in r["refused"]]
+    other = [e for r in parts for e in r["other"]]
+    return {"clients": clients, "client_processes": len(workers), "batch": len(plans), "seconds": seconds,
             "accepted": len(accepted), "accepted_p50_ms": pct(accepted, 50) if accepted else None,
             "accepted_p99_ms": pct(accepted, 99) if accepted else None, "accepted_max_ms": max(accepted, default=None),
             "refused": len(refused), "refused_p50_ms": pct(refused, 50) if refused else None,
-            "refused_p99_ms": pct(refused, 99) if refused else None, "refused_without_retry_after": len(without_retry_after),
+            "refused_p99_ms": pct(refused, 99) if refused else None,
+            "refused_without_retry_after": sum(r["without_retry_after"] for r in parts),
             "other_errors": len(other), "first_other_errors": other[:5],
-            "plans_per_s": len(accepted) * len(plans) / wall,
+            "plans_per_s": len(accepted) * len(plans) / seconds,
             "readyz_probes": len(probes), "readyz_p50_ms": pct(probes, 50), "readyz_p99_ms": pct(probes, 99)}
 
 
@@ -177,6 +203,11 @@ def main() -> None:
     ap.add_argument("--clients", type=int, default=64)
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--seconds", type=float, default=30.0)
+    ap.add_argument("--client-processes", type=int, default=8,
+                    help="processes the clients are spread over (the /readyz prober has one more of its own)")
+    ap.add_argument("--service-nice", type=int, default=10,
+                    help="the service's niceness: the clients share its cores, and a client that waits for a core "
+                         "after its answer arrived would time the scheduler, not the service (0: same priority)")
     ap.add_argument("--swap-clients", type=int, default=8)
     ap.add_argument("--setting", action="append", default=[], metavar="NAME=VALUE",
                     help="a service setting for the run (e.g. max_queued_plans=128); repeatable")
@@ -198,11 +229,11 @@ def main() -> None:
         changed["extra"].pop("version", None)
         (other / "manifest.json").write_text(json.dumps(changed, indent=2))
         server = Server(args.bundle, 1, free_port(), args.ready_timeout, settings=settings,
-                        log_args=("--log-format", "json", "--log-level", "info"))
+                        log_args=("--log-format", "json", "--log-level", "info"), nice=args.service_nice)
         try:
             print(f"serving {manifest['name']} at {server.base}, settings {settings or 'defaults'}", flush=True)
             mark = os.fstat(server.log.fileno()).st_size  # the service's log so far: start-up
-            loaded = overload(server.base, image, plans, args.clients, args.seconds)
+            loaded = overload(server.base, image, plans, args.clients, args.seconds, args.client_processes)
             loaded["server_side"] = server_side(server.log, mark)
             swapped = swap(server.base, manifest["name"], image, plans[0], args.swap_clients, other)
         finally:
@@ -213,7 +244,8 @@ def main() -> None:
               "swap_failed_requests": swapped["failed_requests"] == 0,
               "swap_new_version_s": swapped["new_version_after_s"] is not None
               and swapped["new_version_after_s"] <= 10.0}
-    result = {"bundle": str(args.bundle), "T": args.T, "settings": settings, "overload": loaded, "swap": swapped,
+    result = {"bundle": str(args.bundle), "T": args.T, "settings": settings, "service_nice": args.service_nice,
+              "client_processes": args.client_processes, "overload": loaded, "swap": swapped,
               "targets": TARGETS, "checks": checks, "machine": {"python": platform.python_version(),
                                                                 "cpus": os.cpu_count()},
               "command": "python benchmarks/service_overload.py " + " ".join(sys.argv[1:])}

@@ -189,6 +189,13 @@ def main(argv: list[str] | None = None, prog: str = "python -m planner_client") 
     os.environ.setdefault("MUJOCO_GL", "egl")
     if args.command == "collect":
         return collect_command(args, parser, argv)
+    from firp.core.tracing import TracingConfigError, configure_tracing
+    from planner_client.transport import TRACING_SERVICE_NAME
+
+    try:  # a bad OTEL_* variable is a usage error, named before any trial runs
+        configure_tracing(TRACING_SERVICE_NAME)
+    except TracingConfigError as exc:
+        parser.error(str(exc))
     return run_command(args, parser, argv)
 
 

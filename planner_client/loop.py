@@ -46,10 +46,11 @@ import numpy as np
 
 from firp.core.decisions import (DECISION_RULES, chosen_by_rule, conformal_threshold, first_accepted,
                                  is_informative)
+from firp.core.tracing import configure_tracing, span, tracer_of
 from planner_client.backend import SimBackend, SimOutcome
 from planner_client.ik import IKFailure
 from planner_client.recording import ExecutionRecorder, frames_of
-from planner_client.transport import request_id
+from planner_client.transport import TRACING_SERVICE_NAME, request_id
 
 
 @dataclass(frozen=True)
@@ -405,9 +406,12 @@ def run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: Plan
     ``decision`` (:func:`decision_for`, made once per run) is needed when there is a scorer."""
     if scorer is not None and decision is None:
         raise ValueError("a trial with a scorer needs the run's decision (decision_for)")
-    with request_id(f"trial-{trial}-{uuid.uuid4().hex[:12]}") as rid:
+    tracer = tracer_of(configure_tracing(TRACING_SERVICE_NAME), "firp.planner")
+    with request_id(f"trial-{trial}-{uuid.uuid4().hex[:12]}") as rid, \
+            span(tracer, "trial", {"firp.trial": trial, "firp.seed": config.seed + trial, "firp.task": config.task,
+                                   "firp.request_id": rid}) as trace_id:
         record = _run_trial(trial, config, sim, planner, scorer, identity, recorder, decision)
-    return {**record, "request_id": rid}
+    return {**record, "request_id": rid, **({"trace_id": trace_id} if trace_id else {})}
 
 
 def _run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: Planner, scorer: Scorer | None,

@@ -57,8 +57,14 @@ def main(argv: list[str] | None = None, prog: str = "python -m service") -> int:
     from service.app import create_app
     from service.server import ServiceServer
 
+    from firp.core.tracing import TracingConfigError
+
     configure_logging(settings.log_level, settings.log_format)
-    app = create_app(settings)
+    try:
+        app = create_app(settings)
+    except TracingConfigError as exc:  # an OTEL_* variable this install cannot honour
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return 2
     # uvicorn's loggers propagate to the root handler; the request lines are firp.core.request_log's
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=settings.log_level,
                             access_log=False, log_config=None, timeout_graceful_shutdown=5)

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from typing import Protocol
 
 from fastapi import Request
 from starlette.datastructures import Headers
@@ -38,13 +39,23 @@ from firp.core.deadlines import MAX_TIMEOUT_S, TIMEOUT_HEADER, deadline_exceeded
 from service.errors import ServiceError, error_response
 from service.metrics import ServiceMetrics
 
-__all__ = ["AdmissionControl", "InFlight", "MAX_TIMEOUT_S", "SCOPE_DEADLINE", "TIMEOUT_HEADER", "deadline_exceeded",
-           "deadline_of", "overloaded", "remaining", "tighten_deadline"]
+__all__ = ["Admission", "AdmissionControl", "InFlight", "MAX_TIMEOUT_S", "SCOPE_DEADLINE", "TIMEOUT_HEADER", "deadline_exceeded",
+           "deadline_of", "overloaded", "release_reservation", "remaining", "tighten_deadline"]
 
 #: the request's deadline (``time.monotonic()`` seconds, or None: no budget), in the ASGI scope
 SCOPE_DEADLINE = "firp.deadline"
 #: when the request arrived (``time.monotonic()``), in the ASGI scope
 SCOPE_ARRIVAL = "firp.arrival"
+#: the callable that releases the request's reservation in the micro-batcher's bounds, until it is released
+SCOPE_RESERVATION = "firp.reservation"
+
+
+def release_reservation(scope: Scope) -> None:
+    """Release the request's reservation (:meth:`service.batching.MicroBatcher.admit`), once: when its job
+    is submitted (then it counts as queued plans), or when the request ends without one."""
+    release = scope.pop(SCOPE_RESERVATION, None)
+    if release is not None:
+        release()
 
 
 def overloaded(message: str, retry_after_s: int) -> ServiceError:
@@ -80,12 +91,20 @@ class InFlight:
         self.metrics.admitted.set(self.count)
 
 
+class Admission(Protocol):
+    """What admission asks of a queue (:class:`service.batching.MicroBatcher`)."""
+
+    def admit(self) -> str | None: ...
+
+    def release(self) -> None: ...
+
+
 class AdmissionControl:
     """Pure ASGI middleware on the scoring routes: the concurrency bound and each request's deadline."""
 
     def __init__(self, app: ASGIApp, *, routes: Sequence[BaseRoute], max_concurrent: int, default_timeout_s: float,
                  retry_after_s: int, metrics: ServiceMetrics, in_flight: InFlight,
-                 queue_full: Callable[[], str | None] = lambda: None):
+                 queue: Callable[[], Admission | None] = lambda: None):
         self.app = app
         self.routes = tuple(routes)
         self.max_concurrent = max_concurrent
@@ -93,7 +112,7 @@ class AdmissionControl:
         self.retry_after_s = retry_after_s
         self.metrics = metrics
         self.in_flight = in_flight
-        self.queue_full = queue_full
+        self.queue = queue  # the micro-batcher's admission (None: no queue to bound)
 
     def _scoring(self, scope: Scope) -> bool:
         return any(route.matches(scope)[0] == Match.FULL for route in self.routes)
@@ -117,14 +136,18 @@ class AdmissionControl:
                              "at once (setting max_concurrent_requests); retry later", self.retry_after_s)
             await error_response(scope, exc.status, exc.field, exc.rule, exc.message, exc.headers)(scope, receive, send)
             return
-        full = self.queue_full()
+        queue = self.queue()
+        full = None if queue is None else queue.admit()
         if full is not None:  # refused before the body is read or parsed: the cheapest answer there is
             self.metrics.shed.labels("queue").inc()
             exc = overloaded(full, self.retry_after_s)
             await error_response(scope, exc.status, exc.field, exc.rule, exc.message, exc.headers)(scope, receive, send)
             return
+        if queue is not None:
+            scope[SCOPE_RESERVATION] = queue.release
         self.in_flight.add(1)
         try:
             await self.app(scope, receive, send)
         finally:
             self.in_flight.add(-1)
+            release_reservation(scope)  # a request that ended before its submit (an error, a 422)

@@ -18,6 +18,12 @@ How, and why this way:
   for a pass: a request beyond that is refused with 503 at once. A request whose deadline passes
   while it waits is answered 504 and dropped when the runner reaches it, so no pass computes work
   nobody waits for.
+* **Admitted work counts before it is queued.** Between its admission and its submit a request's
+  body is read and parsed on the event loop. A burst admitted whole because the queue was empty
+  when it arrived would be parsed whole (~10 ms per batch of 16 plans, the event loop's time) and
+  then mostly refused: slow refusals and slow probes. So admission (:meth:`admit`) reserves the
+  plans a request is expected to bring (a moving average of what requests brought) and the bounds
+  count the reservations too; a request's submit turns its reservation into queued plans.
 * **Errors stay per request.** Each job is validated and its image decoded on its own; a bad plan
   fails its own request (422), never its batch neighbours'. An unexpected error in the shared
   pass fails the requests of that pass (500), and the runner goes on.
@@ -76,6 +82,8 @@ class MicroBatcher:
         self.max_queued_plans = max_queued_plans
         self.retry_after_s = retry_after_s
         self.queued_plans = 0  # plans submitted and not yet taken by the runner
+        self.reserved = 0  # requests admitted (reserved) and not yet submitted: their bodies are being parsed
+        self.plans_per_request = 1.0  # what a request brings: moving average over the submitted ones
         self.max_queue_wait_s = max_queue_wait_s  # 0: no bound on the expected wait
         self.seconds_per_plan: float | None = None  # measured: moving average over the last passes
         self._send: MemoryObjectSendStream[_Pending]
@@ -91,6 +99,7 @@ class MicroBatcher:
             raise ServiceError(503, None, "not_ready", "the service is not scoring (starting or stopping)",
                                headers={"Retry-After": "1"})
         n = len(job.plans)
+        self.plans_per_request = 0.8 * self.plans_per_request + 0.2 * n
         reason = self.full(n)
         if reason is not None:
             self._count_shed()
@@ -101,6 +110,7 @@ class MicroBatcher:
             self._count_deadline("queued")
             raise deadline_exceeded("queued", pending.budget_s)
         self._set_queued(self.queued_plans + n)
+        job.timeline.queued_ns = time.time_ns()
         self._send.send_nowait(pending)  # bounded by max_queued_plans, above
         with anyio.move_on_after(math.inf if deadline is None else deadline - now):
             await pending.done.wait()
@@ -119,24 +129,43 @@ class MicroBatcher:
         previous = self.seconds_per_plan
         self.seconds_per_plan = per_plan if previous is None else 0.8 * previous + 0.2 * per_plan
 
+    @property
+    def reserved_plans(self) -> int:
+        """The plans the admitted, not yet submitted requests are expected to bring."""
+        return round(self.reserved * self.plans_per_request)
+
     def expected_wait_s(self, extra_plans: int = 0) -> float:
-        """How long ``extra_plans`` more would wait for their pass, from the measured cost of a plan."""
-        return (self.queued_plans + extra_plans) * (self.seconds_per_plan or 0.0)
+        """How long ``extra_plans`` more would wait for their pass (behind the queued and the reserved
+        plans), from the measured cost of a plan."""
+        return (self.queued_plans + self.reserved_plans + extra_plans) * (self.seconds_per_plan or 0.0)
 
     def full(self, extra_plans: int = 0) -> str | None:
         """Why ``extra_plans`` more cannot be queued now (None: they can). A request always may when
-        nothing waits, however large: a lone request is never refused."""
-        if self.queued_plans == 0:
+        nothing waits or is reserved, however large: a lone request is never refused."""
+        if self.queued_plans == 0 and self.reserved == 0:
             return None
-        n = self.queued_plans + extra_plans
+        waiting = f"{self.queued_plans} plans are waiting for a pass and {self.reserved} requests are being read"
+        n = self.queued_plans + self.reserved_plans + extra_plans
         if self.max_queued_plans is not None and n > self.max_queued_plans:
-            return (f"{self.queued_plans} plans are waiting for a pass; the most that may wait is "
-                    f"{self.max_queued_plans} (setting max_queued_plans); retry later")
+            return (f"{waiting}; the most that may wait is {self.max_queued_plans} plans (setting max_queued_plans); "
+                    "retry later")
         wait = self.expected_wait_s(extra_plans)
         if self.max_queue_wait_s and wait > self.max_queue_wait_s:
-            return (f"{self.queued_plans} plans are waiting for a pass, about {wait:.2f} s of work; the longest "
-                    f"wait allowed is {self.max_queue_wait_s:g} s (setting max_queue_wait_s); retry later")
+            return (f"{waiting}, about {wait:.2f} s of work; the longest wait allowed is {self.max_queue_wait_s:g} s "
+                    "(setting max_queue_wait_s); retry later")
         return None
+
+    def admit(self) -> str | None:
+        """Admission of a request whose body is not read yet: why not (None: admitted, and the plans it
+        is expected to bring are reserved until :meth:`release`)."""
+        reason = self.full(max(1, round(self.plans_per_request)))
+        if reason is None:
+            self.reserved += 1
+        return reason
+
+    def release(self) -> None:
+        """An admitted request submitted its job (now queued plans) or ended without one."""
+        self.reserved -= 1
 
     def _set_queued(self, n: int) -> None:
         self.queued_plans = n
@@ -173,6 +202,7 @@ class MicroBatcher:
             if self._live(first, time.monotonic()):
                 break
         first.taken = True
+        first.job.timeline.taken_ns = time.time_ns()
         batch, n = [first], first.n_plans
         while n < self.max_plans:
             try:
@@ -185,6 +215,7 @@ class MicroBatcher:
                 self._carry = item  # first in the next batch: order is kept
                 break
             item.taken = True
+            item.job.timeline.taken_ns = time.time_ns()
             batch.append(item)
             n += item.n_plans
         return batch

@@ -14,14 +14,15 @@ from fastapi import Request, Security
 from fastapi.security import APIKeyHeader
 
 from firp.core.request_log import SCOPE_LOG
-from service.admission import deadline_exceeded, deadline_of, remaining
+from firp.core.tracing import record_span
+from service.admission import deadline_exceeded, deadline_of, release_reservation, remaining
 from service.errors import ServiceError
 from service.metrics import ServiceMetrics
-from service.scorer import ModelScores, ScoreJob, ServiceModel
+from service.scorer import JobTimeline, ModelScores, ScoreJob, ServiceModel
 from service.settings import ServiceSettings
 
 __all__ = ["API_KEY_HEADER", "check_batch_size", "check_task", "image_digest", "metrics_of", "ready_model",
-           "require_api_key", "score_off_loop", "settings_of"]
+           "require_api_key", "score_off_loop", "settings_of", "trace_job"]
 
 API_KEY_HEADER = "X-API-Key"
 
@@ -73,6 +74,30 @@ def check_batch_size(n: int, limit: int, field: str) -> None:
         raise ServiceError(422, field, "batch_size", f"between 1 and {limit} plans per call, got {n}")
 
 
+def trace_job(request: Request, timeline: JobTimeline, plans: int, version: str | None,
+              error: BaseException | None) -> None:
+    """The job's stages as spans of the request's trace (nothing when tracing is off): ``queue wait``
+    (the micro-batcher's queue, or the inference token), ``backbone`` (the image decoded and its
+    features computed; absent when they were cached) and ``ensemble pass`` (the members over every
+    plan of the pass this job shared)."""
+    tracer = getattr(request.app.state, "tracer", None)
+    if tracer is None or timeline.queued_ns is None:
+        return
+    failed = None if error is None else (getattr(error, "rule", None) or type(error).__name__)
+    if timeline.taken_ns is None:  # answered before a pass took it: dropped at its deadline, or refused
+        record_span(tracer, "queue wait", timeline.queued_ns, time.time_ns(), {"firp.plans": plans}, failed)
+        return
+    record_span(tracer, "queue wait", timeline.queued_ns, timeline.taken_ns, {"firp.plans": plans})
+    if timeline.backbone_ns is not None:
+        record_span(tracer, "backbone", *timeline.backbone_ns)
+    if timeline.members_ns is not None:
+        attributes = {"firp.plans": plans, "firp.pass.requests": timeline.pass_jobs,
+                      "firp.pass.plans": timeline.pass_plans}
+        if version:
+            attributes["firp.model.version"] = version
+        record_span(tracer, "ensemble pass", *timeline.members_ns, attributes, failed)
+
+
 def image_digest(kind: bytes, *parts: bytes) -> bytes:
     """The feature cache's key: what the image bytes were (base64 text, or shape + pixels)."""
     h = hashlib.sha256(kind)
@@ -96,9 +121,13 @@ async def score_off_loop(request: Request, model: ServiceModel, endpoint: str, i
     started = time.perf_counter()
     try:
         if batcher is not None:
+            release_reservation(request.scope)  # from here its plans count as queued
             scores = await batcher.submit(job, deadline)
         else:
+            job.timeline.queued_ns = time.time_ns()  # waiting for the inference token
+
             def work() -> ModelScores:
+                job.timeline.taken_ns = time.time_ns()
                 left = remaining(deadline)
                 if left is not None and left <= 0:  # waited for the inference token past its budget: drop it
                     metrics_of(request).deadline_exceeded.labels("queued").inc()
@@ -112,10 +141,12 @@ async def score_off_loop(request: Request, model: ServiceModel, endpoint: str, i
                 return result
 
             scores = await model.run(work)
-    except BaseException:
+    except BaseException as exc:
         model.statistics.failed(time.perf_counter() - started)
+        trace_job(request, job.timeline, len(plans), None, exc)
         raise
     model.statistics.answered(time.perf_counter() - started, len(plans))
+    trace_job(request, job.timeline, len(plans), scores.version, None)
     metrics_of(request).observe_inference(endpoint, scores.inference_s, len(plans), scores.cache_hit)
     request.scope.setdefault(SCOPE_LOG, {}).update(model_version=scores.version, plans=len(plans))
     return scores

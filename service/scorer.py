@@ -25,7 +25,7 @@ import logging
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -54,7 +54,7 @@ from firp.core.contract import (
 from firp.serving import EnsembleScorer
 from service.statistics import InferenceStatistics
 
-__all__ = ["FeatureCache", "ModelScores", "ScoreJob", "ServiceModel", "failure_steps", "neutral_plan",
+__all__ = ["FeatureCache", "JobTimeline", "ModelScores", "ScoreJob", "ServiceModel", "failure_steps", "neutral_plan",
            "set_torch_threads"]
 
 log = logging.getLogger("service")
@@ -105,6 +105,19 @@ class FeatureCache:
         return len(self._items)
 
 
+@dataclass
+class JobTimeline:
+    """When a job's stages ran (``time.time_ns()``), written by the batcher and the worker thread and
+    read back on the request's side to record its trace spans (:mod:`firp.core.tracing`)."""
+
+    queued_ns: int | None = None  # entered the micro-batcher's queue
+    taken_ns: int | None = None  # taken into a pass
+    backbone_ns: tuple[int, int] | None = None  # image decoded and its features computed (None: cached)
+    members_ns: tuple[int, int] | None = None  # the ensemble's pass over every plan of the batch
+    pass_jobs: int = 0  # requests that shared the pass
+    pass_plans: int = 0
+
+
 @dataclass(frozen=True)
 class ScoreJob:
     """One request's scoring work: its image (cache key + decoder) and its plans.
@@ -117,6 +130,7 @@ class ScoreJob:
     load_image: Callable[[], np.ndarray]
     plans: Sequence[object]
     fields: Sequence[str] | None
+    timeline: JobTimeline = field(default_factory=JobTimeline)
 
 
 @dataclass(frozen=True)
@@ -299,7 +313,7 @@ class ServiceModel:
             cached = self.cache.get(key)
             hits[j] = cached is not None
             if cached is None:
-                t0 = time.perf_counter()
+                t0, wall0 = time.perf_counter(), time.time_ns()
                 try:
                     image = jobs[j].load_image()
                 except Exception as exc:  # noqa: BLE001 - a bad image fails its own job only
@@ -309,6 +323,7 @@ class ServiceModel:
                     decode_s += time.perf_counter() - t0
                 cached = self.scorer.image_features(image)
                 self.cache.put(key, cached)
+                jobs[j].timeline.backbone_ns = (wall0, time.time_ns())
             feats[j] = cached
         # (job, plan index) of every plan to score, grouped by plan length
         by_length: dict[int, list[tuple[int, int]]] = {}
@@ -316,6 +331,7 @@ class ServiceModel:
             for i, p in enumerate(checked[j]):
                 by_length.setdefault(p.shape[0], []).append((j, i))
         n_members = self.n_members
+        members_start = time.time_ns()
         parts = {j: (np.empty(len(checked[j])), np.empty(len(checked[j])), np.empty(len(checked[j]), dtype=bool),
                      np.empty((len(checked[j]), n_members)), [None] * len(checked[j])) for j in feats}
         for rows in by_length.values():
@@ -329,6 +345,10 @@ class ServiceModel:
                 members[i] = result.member_probabilities[:, r]
                 attention[i] = None if result.weights is None else result.weights[r]
         elapsed = time.perf_counter() - start - decode_s
+        members_ns = (members_start, time.time_ns())
+        n_plans = sum(len(checked[j]) for j in feats)
+        for j in feats:
+            jobs[j].timeline.members_ns, jobs[j].timeline.pass_jobs, jobs[j].timeline.pass_plans = members_ns, len(feats), n_plans
         for j, (probs, spread, success, members, attention) in parts.items():
             steps = failure_steps(attention, success.tolist())
             out[j] = ModelScores(probs, members, spread, success, steps, attention, self.scorer.threshold, elapsed,

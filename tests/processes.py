@@ -13,6 +13,7 @@ import queue
 import re
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Mapping, Sequence
@@ -38,8 +39,9 @@ class ServedProcess:
     has not exited ``stop_timeout`` seconds later)."""
 
     def __init__(self, module: str, args: Sequence[str], env: Mapping[str, str], *,
-                 listen_timeout: float = 300.0, stop_timeout: float = 60.0):
+                 listen_timeout: float = 300.0, stop_timeout: float = 60.0, capture_stdout: bool = False):
         self.command = [sys.executable, "-m", module, *args]
+        self._stdout = tempfile.TemporaryFile("w+") if capture_stdout else None
         self.env = dict(env)
         self.listen_timeout = listen_timeout
         self.stop_timeout = stop_timeout
@@ -54,11 +56,20 @@ class ServedProcess:
         return "".join(self.lines)
 
     @property
+    def stdout(self) -> str:
+        """What the process printed on standard output (``capture_stdout=True``), so far."""
+        if self._stdout is None:
+            raise ValueError("started without capture_stdout=True")
+        self._stdout.seek(0)
+        return self._stdout.read()
+
+    @property
     def returncode(self) -> int | None:
         return None if self.proc is None else self.proc.returncode
 
     def __enter__(self) -> ServedProcess:
-        self.proc = subprocess.Popen(self.command, cwd=ROOT, env=self.env, stdout=subprocess.DEVNULL,
+        stdout = subprocess.DEVNULL if self._stdout is None else self._stdout
+        self.proc = subprocess.Popen(self.command, cwd=ROOT, env=self.env, stdout=stdout,
                                      stderr=subprocess.PIPE, text=True)
         self._reader = threading.Thread(target=self._pump, daemon=True)
         self._reader.start()

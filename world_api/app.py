@@ -15,7 +15,7 @@ import logging
 import time
 from contextlib import asynccontextmanager
 from datetime import datetime, timezone
-from typing import AsyncIterator, Callable
+from typing import TYPE_CHECKING, AsyncIterator, Callable
 
 from fastapi import FastAPI, Request, Response
 
@@ -24,6 +24,7 @@ from firp.core.contract import JOINT_NAMES, validate_plan
 from firp.core.deadlines import TIMEOUT_HEADER, parse_timeout
 from firp.core.http_errors import ApiError, error_response
 from firp.core.request_log import RequestLog
+from firp.core.tracing import configure_tracing, instrument_app, tracer_of
 from world_api.backend import WorldBackend
 from world_api.runner import WorldRunner
 from world_api.schemas import (
@@ -31,6 +32,10 @@ from world_api.schemas import (
 )
 from world_api.settings import WorldSettings
 from world_api.store import EpisodeStore, StoredEpisode
+
+if TYPE_CHECKING:
+    from opentelemetry.sdk.trace import TracerProvider
+    from opentelemetry.trace import Tracer
 
 ERRORS = {code: {"model": ErrorResponse} for code in (400, 404, 422, 500, 503, 504)}
 
@@ -54,9 +59,9 @@ class _State:
     """What the lifespan builds: the runner, the episode store and the warm-up's progress."""
 
     def __init__(self, backend: WorldBackend, settings: WorldSettings, clock: Callable[[], float],
-                 log: logging.Logger):
+                 log: logging.Logger, tracer: "Tracer | None" = None):
         self.settings = settings
-        self.runner = WorldRunner(backend, settings.max_queued)
+        self.runner = WorldRunner(backend, settings.max_queued, tracer=tracer)
         self.draining = False  # SIGTERM (firp.core.draining): readiness 503, no new work
         self.store = EpisodeStore(settings.max_episodes, settings.episode_ttl_seconds, clock)
         self.ready = False
@@ -75,15 +80,18 @@ class _State:
 
 
 def create_world_app(backend: WorldBackend, settings: WorldSettings, clock: Callable[[], float] = time.time,
-                     title: str = "firp world") -> FastAPI:
+                     title: str = "firp world", tracer_provider: "TracerProvider | None" = None) -> FastAPI:
     """The API over ``backend`` (built lazily: its worlds are made on the runner's thread at warm-up);
-    ``clock`` (seconds since the epoch) is injectable so tests can expire episodes."""
+    ``clock`` (seconds since the epoch) is injectable so tests can expire episodes. Tracing
+    (:mod:`firp.core.tracing`) is on when ``tracer_provider`` is given or the ``OTEL_*`` variables ask."""
     log = logging.getLogger(backend.name)
+    if tracer_provider is None:
+        tracer_provider = configure_tracing(f"firp-{backend.name.replace('_', '-')}")
     EpisodeRequest = episode_request_model(tuple(backend.tasks))
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        state = _State(backend, settings, clock, log)
+        state = _State(backend, settings, clock, log, tracer_of(tracer_provider, f"firp.{backend.name}"))
         app.state.sim = state
         warm_up = asyncio.create_task(state.warm_up())
         try:
@@ -95,6 +103,8 @@ def create_world_app(backend: WorldBackend, settings: WorldSettings, clock: Call
     app = FastAPI(title=title, version="1", lifespan=lifespan, description=__doc__.split("\n\n")[0])
     http_errors.install_error_handlers(app, log)
     app.add_middleware(RequestLog, logger=f"{backend.name}.access")  # the request id, one log line per request
+    if tracer_provider is not None:  # outermost: the server span covers the request's whole life
+        instrument_app(app, tracer_provider)
 
     def state_of(request: Request) -> _State:
         return request.app.state.sim

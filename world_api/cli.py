@@ -63,8 +63,14 @@ def serve(args: argparse.Namespace, settings: type[WorldSettings], create_app: C
 
     from firp.core.draining import DrainingServer
 
+    from firp.core.tracing import TracingConfigError
+
     configure_logging(args.log_level, resolved.log_format)
-    app = create_app(resolved)
+    try:
+        app = create_app(resolved)
+    except TracingConfigError as exc:  # an OTEL_* variable this install cannot honour
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
 
     def begin_drain() -> None:
         app.state.sim.draining = True

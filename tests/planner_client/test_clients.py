@@ -138,6 +138,17 @@ def test_retry_after_is_capped_and_never_shortens_the_backoff():
     assert policy.delay(1, 3.0) == 3.0 and policy.delay(2, 3600.0) == 10.0
 
 
+def test_the_jitter_spreads_retries_and_never_comes_back_before_retry_after():
+    """Clients refused together with Retry-After: 1 return spread over [1, 1.5) s, not all at once."""
+    import random
+
+    rng = random.Random(0)
+    waits = [RetryPolicy().wait(1, 1.0, rng) for _ in range(1000)]
+    assert min(waits) >= 1.0 and max(waits) < 1.5
+    assert max(waits) - min(waits) > 0.45 and len({round(w, 3) for w in waits}) > 300  # spread, not a few values
+    assert RetryPolicy(jitter=0.0).wait(2, None, rng) == RetryPolicy().delay(2)
+
+
 def test_4xx_is_raised_at_once_with_the_services_details(stub):
     server = stub([(422, {"error": {"field": "plan", "rule": "length", "message": "T too long"}})])
     with ScoreClient(server.url, retry=FAST) as scorer, pytest.raises(RequestRejected) as err:
@@ -174,7 +185,8 @@ def test_connection_errors_are_retried_until_the_server_comes_up(stub):
             server.append(stub([(200, SCORE)], sock=sock))
 
     server: list = []
-    with ScoreClient("http://127.0.0.1:%d" % sock.getsockname()[1], retry=RetryPolicy(attempts=6, base_delay=0.1)) as scorer:
+    no_jitter = RetryPolicy(attempts=6, base_delay=0.1, jitter=0.0)  # the waits exactly, to compare them
+    with ScoreClient("http://127.0.0.1:%d" % sock.getsockname()[1], retry=no_jitter) as scorer:
         scorer.http._sleep = backoff
         assert scorer.score("aW1n", _plan(), "replacement")["score"] == 0.8
     assert waits == [0.1, 0.2]  # exponential backoff, and no attempt after the answer

@@ -195,3 +195,41 @@ def test_a_queue_longer_than_its_wait_bound_refuses_at_the_door(tiny_bundle):
         assert refused.status_code == 503 and refused.json()["error"]["rule"] == "overloaded", refused.text
         assert "max_queue_wait_s" in refused.json()["error"]["message"]
     assert [a.status_code for a in answers] == [200, 200]
+
+
+def test_admission_reserves_the_plans_a_request_is_expected_to_bring():
+    """A burst is admitted only as far as the bounds allow *with* the requests still being read: each
+    admitted request reserves the plans requests have been bringing, until its submit or its end."""
+    from service.batching import MicroBatcher
+
+    batcher = MicroBatcher(model=None, max_plans=64, max_queued_plans=8)  # admission never touches the model
+    batcher.plans_per_request = 4.0
+    assert batcher.admit() is None and batcher.reserved == 1  # a lone request: always
+    assert batcher.admit() is None and batcher.reserved_plans == 8  # 4 reserved + 4 expected = 8 <= 8
+    refused = batcher.admit()
+    assert refused is not None and "2 requests are being read" in refused and "max_queued_plans" in refused
+    assert batcher.reserved == 2  # a refusal reserves nothing
+    batcher.release()
+    batcher.release()
+    assert batcher.reserved == 0 and batcher.admit() is None
+
+    timed = MicroBatcher(model=None, max_plans=64, max_queue_wait_s=0.05)
+    timed.plans_per_request, timed.seconds_per_plan = 2.0, 0.01
+    assert timed.admit() is None and timed.admit() is None  # (0 + 2 + 2) plans x 10 ms = 0.04 s
+    refused = timed.admit()  # (0 + 4 + 2) x 10 ms = 0.06 s > 0.05 s
+    assert refused is not None and "max_queue_wait_s" in refused and "about 0.06 s of work" in refused
+
+
+def test_every_admitted_request_releases_its_reservation(tiny_bundle):
+    """Answered, refused by validation (422) or by a bad header: no reservation outlives its request."""
+    app = _app(tiny_bundle)
+    with ServiceClient(app) as c:
+        answers = [c.post("/v1/score", json=_single(1)).status_code,
+                   c.post("/v1/score/batch", json=_batch(3)).status_code,
+                   c.post("/v1/score", json={"image": IMAGE, "plan": [[0.0] * 15] * 9}).status_code,
+                   c.post("/v1/score", json={"not": "a body"}).status_code,
+                   c.post("/v2/models/tiny/infer", json={"inputs": []}).status_code]
+        batcher = app.state.batcher
+        assert (batcher.reserved, batcher.queued_plans) == (0, 0)
+    assert answers == [200, 200, 422, 422, 422]
+    assert 1.0 < batcher.plans_per_request < 3.0  # moved towards what the answered requests brought

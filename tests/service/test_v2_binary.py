@@ -4,10 +4,7 @@ client (``tritonclient.http``, over loopback), and malformed binary bodies refus
 from __future__ import annotations
 
 import json
-import socket
 import struct
-import threading
-import time
 from collections.abc import Iterator
 
 import numpy as np
@@ -16,6 +13,8 @@ import pytest
 from service.app import create_app
 from service.settings import ServiceSettings
 from tests.firp.bundle_helpers import random_image, valid_plans
+
+from tests.loopback import serve_on_loopback
 
 from .helpers import encode_image
 
@@ -208,27 +207,8 @@ def test_the_body_limit_holds_for_binary_bodies(client, settings):
 @pytest.fixture(scope="module")
 def loopback(settings) -> Iterator[str]:
     """The service in a uvicorn server on a free loopback port, in a thread of this process."""
-    import uvicorn
-
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))  # bound here and handed over: no other process can take the port meanwhile
-    port = sock.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(create_app(settings), log_level="warning", access_log=False, lifespan="on"))
-    started = threading.Event()
-    real_startup = server.startup
-
-    async def startup(sockets=None):
-        await real_startup(sockets=sockets)
-        started.set()
-
-    server.startup = startup
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    assert started.wait(60) and server.started, "the loopback service did not start"
-    yield f"127.0.0.1:{port}"
-    server.should_exit = True
-    thread.join(timeout=30)
-    sock.close()
+    with serve_on_loopback(create_app(settings)) as address:
+        yield address
 
 
 @pytest.mark.parametrize("binary", [True, False], ids=["binary", "json"])
@@ -269,48 +249,34 @@ def test_tritonclient_drives_the_repository_and_reads_v2_errors(tiny_bundle):
     import tritonclient.http as httpclient
     from tritonclient.utils import InferenceServerException
 
-    import uvicorn
-
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
-    server = uvicorn.Server(uvicorn.Config(create_app(ServiceSettings(bundle=tiny_bundle)), log_level="warning",
-                                           lifespan="on"))
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    while not server.started:
-        assert time.monotonic() < deadline, "the service did not start"
-        time.sleep(0.05)
-    triton = httpclient.InferenceServerClient(url=f"127.0.0.1:{sock.getsockname()[1]}")
-    try:
-        version = triton.get_model_metadata("tiny")["versions"][0]
-        assert triton.is_model_ready("tiny", model_version=version)
-        assert not triton.is_model_ready("tiny", model_version="0")
-        assert triton.get_model_repository_index() == [{"name": "tiny", "version": version, "state": "READY",
-                                                        "reason": ""}]
-        triton.unload_model("tiny")
-        assert not triton.is_server_ready()
-        triton.load_model("tiny")  # the configured bundle, read again
-        assert triton.is_model_ready("tiny")
-        with pytest.raises(InferenceServerException) as err:
-            triton.get_model_metadata("other")
-        assert "serves model 'tiny', not 'other'" in str(err.value)
-        image = httpclient.InferInput("image", list(IMG.shape), "UINT8")
-        image.set_data_from_numpy(IMG)
-        plan = httpclient.InferInput("plan", list(PLANS.shape), "FP32")
-        plan.set_data_from_numpy(PLANS.astype(np.float32))
-        result = triton.infer("tiny", [image, plan], timeout=30_000_000)  # microseconds, Triton's own parameter
-        assert result.as_numpy("score").shape == (2,)
-        # the statistics extension, of the bundle loaded again above: one request of two plans since
-        (stats,) = triton.get_inference_statistics("tiny")["model_stats"]
-        assert (stats["name"], stats["version"]) == ("tiny", version)
-        assert stats["inference_count"] == 2 and stats["execution_count"] == 1
-        assert stats["inference_stats"]["success"]["count"] == 1 and stats["inference_stats"]["success"]["ns"] > 0
-        assert stats["inference_stats"]["compute_infer"]["ns"] > 0
-        assert triton.get_inference_statistics()["model_stats"] == [stats]
-        assert triton.get_inference_statistics("tiny", model_version=version)["model_stats"] == [stats]
-    finally:
-        triton.close()
-        server.should_exit = True
-        thread.join(timeout=30)
-        sock.close()
+    with serve_on_loopback(create_app(ServiceSettings(bundle=tiny_bundle))) as address:
+        triton = httpclient.InferenceServerClient(url=address)
+        try:
+            version = triton.get_model_metadata("tiny")["versions"][0]
+            assert triton.is_model_ready("tiny", model_version=version)
+            assert not triton.is_model_ready("tiny", model_version="0")
+            assert triton.get_model_repository_index() == [{"name": "tiny", "version": version, "state": "READY",
+                                                            "reason": ""}]
+            triton.unload_model("tiny")
+            assert not triton.is_server_ready()
+            triton.load_model("tiny")  # the configured bundle, read again
+            assert triton.is_model_ready("tiny")
+            with pytest.raises(InferenceServerException) as err:
+                triton.get_model_metadata("other")
+            assert "serves model 'tiny', not 'other'" in str(err.value)
+            image = httpclient.InferInput("image", list(IMG.shape), "UINT8")
+            image.set_data_from_numpy(IMG)
+            plan = httpclient.InferInput("plan", list(PLANS.shape), "FP32")
+            plan.set_data_from_numpy(PLANS.astype(np.float32))
+            result = triton.infer("tiny", [image, plan], timeout=30_000_000)  # microseconds, Triton's own parameter
+            assert result.as_numpy("score").shape == (2,)
+            # the statistics extension, of the bundle loaded again above: one request of two plans since
+            (stats,) = triton.get_inference_statistics("tiny")["model_stats"]
+            assert (stats["name"], stats["version"]) == ("tiny", version)
+            assert stats["inference_count"] == 2 and stats["execution_count"] == 1
+            assert stats["inference_stats"]["success"]["count"] == 1 and stats["inference_stats"]["success"]["ns"] > 0
+            assert stats["inference_stats"]["compute_infer"]["ns"] > 0
+            assert triton.get_inference_statistics()["model_stats"] == [stats]
+            assert triton.get_inference_statistics("tiny", model_version=version)["model_stats"] == [stats]
+        finally:
+            triton.close()
