@@ -243,6 +243,18 @@ fetch_run replicas.jsonl
 "${COMPOSE[@]}" --profile replicas stop sim_worker_2 sim_worker_3 >>"$LOGS/stop.log" 2>&1 || fail "compose stop the replicas"
 echo "   $TRIALS trials on three workers in $REPLICAS_S s"
 
+step "ray: a collection on a head and two workers"
+RAY_EPISODES=4
+start=$SECONDS
+FIRP_RAY_EPISODES=$RAY_EPISODES FIRP_RAY_ACTORS=2 FIRP_RAY_WORKER_CPUS=1 \
+    "${COMPOSE[@]}" --profile ray up --scale ray_worker=2 --exit-code-from ray_head ray_head ray_worker \
+    >"$LOGS/ray.log" 2>&1 || fail "compose --profile ray up (see $LOGS/ray.log)"
+RAY_S=$((SECONDS - start))
+"${COMPOSE[@]}" --profile ray run --rm -T --no-deps --entrypoint cat ray_head /app/data/stacking.h5 \
+    >"$WORK/container-run/ray-stacking.h5" 2>"$LOGS/fetch-ray.log" || fail "no /app/data/stacking.h5 in the volume ray-data"
+nodes=$(grep -c "Ray runtime started\|Ray runtime started." "$LOGS/ray.log" || true)
+echo "   $RAY_EPISODES episodes in $RAY_S s ($nodes Ray nodes started)"
+
 step "stop (drain)"
 for name in service sim_worker; do
     id=$("${COMPOSE[@]}" ps -q "$name")
@@ -256,19 +268,6 @@ done
 teardown
 COMPOSE=()
 
-step "ray: a collection on a head and two workers"
-RAY_EPISODES=4
-start=$SECONDS
-FIRP_RAY_EPISODES=$RAY_EPISODES FIRP_RAY_ACTORS=2 FIRP_RAY_WORKER_CPUS=1 \
-    "${COMPOSE[@]}" --profile ray up --scale ray_worker=2 --exit-code-from ray_head ray_head ray_worker \
-    >"$LOGS/ray.log" 2>&1 || fail "compose --profile ray up (see $LOGS/ray.log)"
-RAY_S=$((SECONDS - start))
-"${COMPOSE[@]}" --profile ray run --rm -T --no-deps --entrypoint cat ray_head /app/data/stacking.h5 \
-    >"$WORK/container-run/ray-stacking.h5" 2>"$LOGS/fetch-ray.log" || fail "no /app/data/stacking.h5 in the volume ray-data"
-nodes=$(grep -c "Ray runtime started\|Ray runtime started." "$LOGS/ray.log" || true)
-echo "   $RAY_EPISODES episodes in $RAY_S s ($nodes Ray nodes started)"
-"${COMPOSE[@]}" "${PROFILES[@]}" down -v --remove-orphans >>"$LOGS/down.log" 2>&1 || true
-
 step "the same trials without containers"
 rm -f "$WORK/host.jsonl"
 "$ROOT/.venv/bin/firp" run --trials "$TRIALS" --out "$WORK/host.jsonl" >"$LOGS/host-run.log" 2>&1 \
@@ -280,7 +279,7 @@ rm -f "$WORK/host-stacking.h5"
     --out "$WORK/host-stacking.h5" >"$LOGS/host-collect.log" 2>&1 || fail "firp collect (see $LOGS/host-collect.log)"
 
 step "compare"
-sizes=""; for n in service sim_worker planner; do sizes+="$n=${SIZE_MB[$n]}:${BUILD_S[$n]} "; done
+sizes=""; for n in service sim_worker planner ray_head; do sizes+="$n=${SIZE_MB[$n]}:${BUILD_S[$n]} "; done
 ready=""; for n in service sim_worker; do ready+="$n=${READY_S[$n]}:${STOP_S[$n]}:${EXIT_CODE[$n]} "; done
 "$PY" "$ROOT/scripts/compose_smoke_report.py" --container "$WORK/container-run/smoke.jsonl" --host "$WORK/host.jsonl" \
     --trials "$TRIALS" --engine "$ENGINE" --base "${FIRP_BASE_IMAGE:-python:3.11-slim}" --images $sizes --servers $ready \
