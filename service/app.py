@@ -131,8 +131,9 @@ def freeze_startup_objects() -> None:
     loop included -- for up to 220 ms: measured with 64 clients, 22 full collections in 25 s, 3.2 s
     in all, and a /readyz p99 of 190 ms. Frozen, they walk only what requests allocated (0.3 s in
     all), /readyz stays within 25 ms and the same load scores 25% more plans per second
-    (``benchmarks/service_overload.py``). A hot swap's new bundle is not frozen: it is one bundle's
-    worth of objects, and the next start-up freezes it."""
+    (``benchmarks/service_overload.py``). A bundle swapped out later is freed by reference counting
+    alone -- frozen objects are never collected as cycles, and a test checks that a dropped model
+    leaves none -- and the bundle swapped in stays unfrozen: one bundle's worth of objects."""
     gc.collect()
     gc.freeze()
 

@@ -66,3 +66,20 @@ def test_mixed_lengths_keep_request_order(tiny_bundle):
         assert mixed.probabilities[i] == pytest.approx(alone.probabilities[0], abs=1e-6)  # float32 members: batch composition moves the last bits
         assert mixed.attention[i].shape == (len(p),)
     assert mixed.member_probabilities.shape == (3, 3)
+
+
+def test_a_dropped_model_leaves_no_cyclic_garbage(tiny_bundle):
+    """The service freezes every object alive after start-up out of the garbage collector's sight
+    (service.app.freeze_startup_objects), so a bundle swapped out must be freed by reference counting
+    alone: anything it left for the cyclic collector would stay, frozen, for the process's life."""
+    import gc
+    import weakref
+
+    model = ServiceModel.load(tiny_bundle)
+    model.warm_up()
+    model.score(b"k", lambda: np.zeros((40, 40, 3), np.uint8), [neutral_plan(10)])
+    gone = weakref.ref(model)
+    gc.collect()  # what loading and scoring left behind, before the drop
+    del model
+    assert gone() is None  # freed at once, by reference counting
+    assert gc.collect() == 0  # and nothing of it waits for the cyclic collector
