@@ -29,8 +29,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
+import re
 import shutil
 import sys
 import tempfile
@@ -143,6 +145,31 @@ def overload(base: str, image: str, plans: list, clients: int, seconds: float, p
             "readyz_probes": len(probes), "readyz_p50_ms": pct(probes, 50), "readyz_p99_ms": pct(probes, 99)}
 
 
+def loop_lag_buckets(base: str) -> dict[float, float]:
+    """The service's ``firp_event_loop_lag_seconds`` histogram now: upper bound (s) -> cumulative count."""
+    text = httpx.get(f"{base}/metrics", timeout=30).text
+    found = re.findall(r'firp_event_loop_lag_seconds_bucket\{le="([^"]+)"\} (\S+)', text)
+    return {float(le): float(count) for le, count in found}
+
+
+def loop_lag(before: dict[float, float], after: dict[float, float]) -> dict[str, Any]:
+    """How late the service's event loop woke its 50 ms probe during the run: the probes' count and the
+    bucket bounds below which half and 99% of them fell (a histogram gives bounds, not exact quantiles)."""
+    bounds = sorted(after)
+    counts = [after[b] - before.get(b, 0.0) for b in bounds]
+    total = counts[-1]
+
+    def bound(q: float) -> float | None:
+        return next((b for b, c in zip(bounds, counts) if c >= q * total), None) if total else None
+
+    return {"probes": int(total), "p50_at_most_ms": _ms(bound(0.5)), "p99_at_most_ms": _ms(bound(0.99)),
+            "over_100_ms": int(total - next((c for b, c in zip(bounds, counts) if b >= 0.1), total))}
+
+
+def _ms(seconds: float | None) -> float | None:
+    return None if seconds is None else (math.inf if math.isinf(seconds) else seconds * 1000.0)
+
+
 def server_side(log, start: int) -> dict[str, Any]:
     """Latency per route and status as the service logged it (JSON request lines), from offset ``start``."""
     log.seek(start)
@@ -233,8 +260,10 @@ def main() -> None:
         try:
             print(f"serving {manifest['name']} at {server.base}, settings {settings or 'defaults'}", flush=True)
             mark = os.fstat(server.log.fileno()).st_size  # the service's log so far: start-up
+            lag_before = loop_lag_buckets(server.base)
             loaded = overload(server.base, image, plans, args.clients, args.seconds, args.client_processes)
             loaded["server_side"] = server_side(server.log, mark)
+            loaded["event_loop_lag"] = loop_lag(lag_before, loop_lag_buckets(server.base))
             swapped = swap(server.base, manifest["name"], image, plans[0], args.swap_clients, other)
         finally:
             server.stop()
@@ -262,6 +291,9 @@ def main() -> None:
     print(f"| plans/s | {o['plans_per_s']:.0f} | |")
     for key, v in o["server_side"].items():
         print(f"| service side: {key} | {v['requests']} · p50 {v['p50_ms']:.1f} ms · p99 {v['p99_ms']:.1f} ms | |")
+    lag = o["event_loop_lag"]
+    print(f"| service side: event loop lag ({lag['probes']} probes of 50 ms) | p50 ≤ {lag['p50_at_most_ms']:g} ms · "
+          f"p99 ≤ {lag['p99_at_most_ms']:g} ms · {lag['over_100_ms']} over 100 ms | |")
     s = swapped
     print(f"| swap: failed requests | {s['failed_requests']} of {s['requests']} | 0 |")
     print(f"| swap: load call / new version answering | {s['load_s']:.2f} s / "

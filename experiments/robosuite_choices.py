@@ -205,8 +205,8 @@ def survey(task: str, seeds: int, first_seed: int, workers: int, max_tries: int,
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--task", default="stack_three", choices=["stack_three", "nut_assembly", "pick_place"],
-                        help="the survey's task (a dataset says its own)")
+    parser.add_argument("--task", default=None, choices=["stack_three", "nut_assembly", "pick_place"],
+                        help="the survey's task (default: the dataset's, else stack_three)")
     parser.add_argument("--data", type=Path, default=None, help="a robosuite dataset to analyse (no simulation)")
     parser.add_argument("--seeds", type=int, default=0, help="scene seeds to survey in simulation (0: none)")
     parser.add_argument("--seed", type=int, default=200_000, help="first survey seed (datasets use 0..)")
@@ -218,6 +218,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.data is None and args.seeds <= 0:
         parser.error("--data or --seeds: nothing to measure")
+    if args.task is None:  # the dataset says its own task; a survey alone defaults to stacking
+        args.task = "stack_three"
+        if args.data is not None:
+            from firp.core.episodes import EpisodeDataset
+
+            with EpisodeDataset(args.data) as ds:
+                args.task = str(ds.attrs.get("task", args.task))
     result: dict = {"command": "python -m experiments.robosuite_choices " + " ".join(argv or sys.argv[1:]),
                     "task": args.task, "machine": {"python": platform.python_version(), "cpus": os.cpu_count()}}
     if args.data is not None:

@@ -47,7 +47,7 @@ from service.batching import MicroBatcher
 from service.errors import error_responses, install_error_handlers
 from service.guard import RequestGuard
 from service.images import ImageLimits, decode_base64_image
-from service.metrics import MetricsMiddleware, ServiceMetrics
+from service.metrics import MetricsMiddleware, ServiceMetrics, watch_event_loop
 from service.routing import FastJSONRoute
 from service.schemas import (
     BatchScoreRequest,
@@ -102,6 +102,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     warmup_ms = await anyio.to_thread.run_sync(model.warm_up)
     freeze_startup_objects()
     async with anyio.create_task_group() as tasks:
+        tasks.start_soon(watch_event_loop, metrics.loop_lag)
         if settings.micro_batch:
             batcher = MicroBatcher(model, settings.micro_batch_max_plans, metrics,
                                    max_queued_plans=settings.max_queued_plans, retry_after_s=settings.retry_after_s,

@@ -20,6 +20,8 @@ methods other than the usual seven are ``other``):
   (``queued``: dropped before any work; ``running``: the pass was under way), see
   :mod:`service.admission`; ``firp_admitted_requests`` and ``firp_queued_plans`` -- the two bounded
   quantities now;
+* ``firp_event_loop_lag_seconds`` -- how late the event loop woke a task that slept 50 ms
+  (:func:`watch_event_loop`): every request waits that long for its turn, whatever route;
 * ``firp_ready``, ``firp_model_info{name,version,task}``, ``firp_model_informative`` and in-flight requests.
 """
 
@@ -34,7 +36,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.errors import SCOPE_RULE
 
-__all__ = ["MetricsMiddleware", "ServiceMetrics", "UNMATCHED"]
+__all__ = ["LOOP_PROBE_S", "MetricsMiddleware", "ServiceMetrics", "UNMATCHED", "watch_event_loop"]
 
 UNMATCHED = "<unmatched>"
 
@@ -44,6 +46,22 @@ _BATCH_BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256)
 _MICRO_BATCH_BUCKETS = (1, 2, 3, 4, 6, 8, 12, 16, 32, 64)
 #: Methods kept as labels; any other (a client may send any token) is counted as "other".
 _METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
+
+
+#: the event loop's probe: sleep this long, and measure how much later than that it woke
+LOOP_PROBE_S = 0.05
+
+
+async def watch_event_loop(histogram: Histogram, period_s: float = LOOP_PROBE_S) -> None:
+    """Forever: sleep ``period_s`` and record how late the loop woke up (its lag). Why: a request's
+    latency inside the service starts when the loop first runs it; time spent before that (a loop busy
+    parsing other requests' bodies, or waiting for the interpreter's lock) is seen only here."""
+    import anyio
+
+    while True:
+        start = time.perf_counter()
+        await anyio.sleep(period_s)
+        histogram.observe(max(0.0, time.perf_counter() - start - period_s))
 
 
 class ServiceMetrics:
@@ -72,6 +90,8 @@ class ServiceMetrics:
         self.admitted = Gauge("firp_admitted_requests", "Scoring requests admitted and not yet answered", registry=r)
         self.queued_plans = Gauge("firp_queued_plans", "Plans waiting for a forward pass (micro-batching)",
                                   registry=r)
+        self.loop_lag = Histogram("firp_event_loop_lag_seconds", "How late the event loop woke a task that slept "
+                                  f"{LOOP_PROBE_S * 1000:g} ms", buckets=_LATENCY_BUCKETS, registry=r)
         self.ready = Gauge("firp_ready", "1 when the bundle is loaded and warmed up", registry=r)
         self.model_info = Gauge("firp_model_info", "The loaded bundle (value 1)", ["name", "version", "task"],
                                 registry=r)

@@ -51,12 +51,13 @@ class ServiceSettings(BaseSettings):
     feature_cache_size: int = Field(64, ge=0, description="images whose backbone features are kept (0: off)")
     micro_batch: bool = Field(True, description="score concurrent requests together in one forward pass (requests "
                               "that queued while the previous pass ran; a lone request is never delayed)")
-    micro_batch_max_plans: int = Field(64, ge=1, le=4096, description="most plans in one shared forward pass")
+    micro_batch_max_plans: int = Field(32, ge=1, le=4096, description="most plans in one shared forward pass "
+                                       "(a request of more plans still runs in one pass of its own)")
     max_concurrent_requests: int = Field(64, ge=1, le=100_000, description="scoring requests admitted at once; "
                                          "one more gets 503 with Retry-After (health, readiness, metrics: never)")
     max_queued_plans: int = Field(256, ge=1, le=1_000_000, description="plans waiting for a forward pass at most; a "
                                   "request that would exceed it gets 503 with Retry-After")
-    max_queue_wait_s: float = Field(0.25, ge=0.0, le=3600.0, description="a request whose plans would wait longer "
+    max_queue_wait_s: float = Field(0.1, ge=0.0, le=3600.0, description="a request whose plans would wait longer "
                                     "than this for their pass (from the measured cost of a plan) gets 503 with "
                                     "Retry-After; when the queue is already that long, before its body is read "
                                     "(0: no bound)")

@@ -351,3 +351,34 @@ def test_serves_a_bundle_on_the_pinned_efficientnet_backbone(tmp_path):
         body = r.json()
     want = _expected(path, random_image(40), np.array([plan_list()]))
     assert body["score"] == pytest.approx(want.probabilities[0], abs=1e-9)
+
+
+def test_the_event_loops_lag_is_measured(tiny_bundle):
+    """firp_event_loop_lag_seconds: a probe on the event loop, and a loop held busy shows in it."""
+    import re
+    import time as clock
+
+    from service.app import create_app
+    from service.settings import ServiceSettings
+
+    from .helpers import ServiceClient
+
+    with ServiceClient(create_app(ServiceSettings(bundle=tiny_bundle))) as c:
+        def count(metrics: str, bucket: str) -> float:
+            return float(re.search(rf'firp_event_loop_lag_seconds_bucket{{le="{re.escape(bucket)}"}} (\S+)',
+                                   metrics).group(1))
+
+        def probes() -> float:
+            return float(re.search(r"firp_event_loop_lag_seconds_count (\S+)", c.get("/metrics").text).group(1))
+
+        deadline = clock.monotonic() + 30
+        while probes() < 2:  # the probe wakes every 50 ms
+            assert clock.monotonic() < deadline, "the loop's probe never reported"
+            clock.sleep(0.05)
+        c.portal.call(lambda: clock.sleep(0.3))  # the event loop's thread held for 0.3 s
+        deadline = clock.monotonic() + 30
+        metrics = c.get("/metrics").text
+        while count(metrics, "+Inf") - count(metrics, "0.25") < 1:  # a probe woke at least 0.25 s late
+            assert clock.monotonic() < deadline, "the held loop did not show in the lag"
+            clock.sleep(0.05)
+            metrics = c.get("/metrics").text
