@@ -243,6 +243,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(args.threads)
     data = load_sequences(args.data, base.model.encoder, args.cache_dir, progress=not args.no_progress)
+    base = base.fit_to_plans(int(data.actions.shape[1]))
     runs = [(repeat, name) for repeat in range(args.repeats) for name in args.methods]
     done = {run: json.loads(path.read_text()) for run in runs if (path := out / f"{run_name(*run)}.json").exists()}
     todo = [run for run in runs if run not in done and (args.only_repeats is None or run[0] in args.only_repeats)]

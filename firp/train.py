@@ -14,7 +14,7 @@ import json
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -60,6 +60,15 @@ class TrainConfig:
     overshooting_stride: int = 4
     threads: int = 2
     model: FIRPConfig = field(default_factory=FIRPConfig)
+
+    def fit_to_plans(self, horizon: int) -> "TrainConfig":
+        """This recipe for plans of ``horizon`` steps: the flattening baselines (A-MLP, A-MLP + image)
+        widen to the dataset's T when it exceeds their ``max_T`` (pick & place's T = 200 against the
+        default 120), since a recipe's flags name no horizon; nothing else depends on T."""
+        baseline = self.model.baseline
+        if horizon <= baseline.max_T:
+            return self
+        return replace(self, model=replace(self.model, baseline=replace(baseline, max_T=horizon)))
 
     def to_dict(self) -> dict:
         d = asdict(self)

@@ -106,3 +106,16 @@ def test_checkpoint_without_a_newer_config_field_resumes(tmp_path, splits):
     (tmp_path / "state.json").write_text(json.dumps(state))
     resumed = train_model(cfg, train, valid, checkpoint_dir=tmp_path, progress=False)
     assert len(resumed.history) == 1
+
+
+@pytest.mark.parametrize("kind", ["a_mlp", "a_mlp_image"])
+def test_a_recipe_fitted_to_longer_plans_flattens_them(kind, splits):
+    """Plans longer than the flattening baselines' max_T (pick & place's 200 steps against 120) are refused
+    by the recipe as written and trained once it is fitted to the dataset's horizon; shorter ones keep it."""
+    train, valid = splits
+    short = config(kind=kind, epochs=1, model=replace(TINY, baseline=replace(TINY.baseline, max_T=T - 4)))
+    with pytest.raises(ValueError, match=f"plan has T={T} steps"):
+        train_model(short, train, valid, progress=False)
+    fitted = short.fit_to_plans(T)
+    assert fitted.model.baseline.max_T == T and fitted.fit_to_plans(T - 8) is fitted
+    assert len(train_model(fitted, train, valid, progress=False).history) == 1
