@@ -21,6 +21,7 @@ import json
 import os
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from firp.core.cli_types import int_in_range, non_negative_float, open_unit_float
@@ -92,6 +93,11 @@ def add_run_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     run.add_argument("--parallel", type=int_in_range("--parallel", 1, 64), default=None, metavar="K",
                      help="trials run at once, one per sim worker (launched: K of them; given: one per --sim URL); "
                           "one scoring service serves them all; records equal a sequential run's (default 1)")
+    run.add_argument("--ray", default=None, metavar="local|auto|ADDRESS",
+                     help="run the trials on --parallel Ray actors, each with our world in its own process (no sim "
+                          "worker): local starts a private cluster for the run, auto joins this machine's (ray "
+                          "start) or RAY_ADDRESS's, else a cluster address (then give --service, reachable from its "
+                          "nodes); records equal a sequential run's")
     run.add_argument("--service", default=settings.service_url, metavar="URL",
                      help="running scoring service (env FIRP_PLANNER_SERVICE_URL); default: launch one for the run")
     run.add_argument("--bundle", type=Path, default=None,
@@ -232,6 +238,28 @@ def _continue_in_robosuite_env(args: argparse.Namespace, parser: argparse.Argume
     os.execv(str(python), [str(python), "-m", "planner_client", *argv])
 
 
+def _ray_trials(args: argparse.Namespace, parser: argparse.ArgumentParser):
+    """``--ray``'s settings, or None; refuses what does not run on Ray actors, naming the flag."""
+    if args.ray is None:
+        return None
+    from planner_client.ray_trials import RayTrials
+
+    if not args.ray.strip():
+        parser.error("--ray: give local, auto or a cluster address (HOST:PORT or ray://HOST:PORT)")
+    if args.sim:
+        parser.error("--ray: the trials run our world inside the Ray actors; drop --sim (or drop --ray to use "
+                     "running sim workers)")
+    if args.world != "mujoco":
+        parser.error("--ray: only our world (--world mujoco) runs inside Ray actors; robosuite's runs in its own "
+                     "environment: use --parallel with launched robosuite workers")
+    if args.record is not None:
+        parser.error("--record writes the executions on this machine's disk; it does not run with --ray")
+    if args.ray not in ("local", "auto") and not args.no_score and not args.service:
+        parser.error(f"--ray {args.ray}: the actors on the cluster's nodes call the scoring service, so give "
+                     "--service with a URL they reach (a launched service listens on this machine's loopback)")
+    return RayTrials(address=args.ray, actors=args.parallel or 1)
+
+
 def run_command(args: argparse.Namespace, parser: argparse.ArgumentParser, argv: list[str]) -> int:
     planner = _world_planner(args, parser, argv)
     if args.resume and args.out is None:
@@ -256,9 +284,11 @@ def run_command(args: argparse.Namespace, parser: argparse.ArgumentParser, argv:
                        record=args.record, world=args.world, rule=args.rule, alpha=args.alpha,
                        compare_rules=not args.no_compare_rules,
                        replan_on_uninformative=args.replan_on_uninformative)
+    ray = _ray_trials(args, parser)
     plan = ServicePlan(task=args.task, out_dir=out.parent, sim_url=args.sim, service_url=args.service,
                        bundle=args.bundle, score=not args.no_score, api_key=args.api_key,
-                       ready_timeout=args.ready_timeout, world=args.world, parallel=args.parallel or 1)
+                       ready_timeout=args.ready_timeout, world=args.world, parallel=args.parallel or 1,
+                       launch_sims=ray is None)
     if plan.sim_urls and args.parallel is not None and args.parallel != len(plan.sim_urls):
         parser.error(f"--parallel: with --sim one trial runs on each given sim worker at a time; {args.parallel} "
                      f"asked, {len(plan.sim_urls)} URL(s) given: give {args.parallel} URLs or drop --parallel")
@@ -279,7 +309,9 @@ def run_command(args: argparse.Namespace, parser: argparse.ArgumentParser, argv:
         with open_services(plan) as services:
             bar = tqdm(total=args.trials, initial=len(records), desc=f"{args.task} trials", unit="trial")
             try:
-                for record in run_trials(config, services.sim, planner, services.scorer, services.sims):
+                if ray is not None and services.scorer is not None:
+                    ray = replace(ray, service_url=services.scorer.base_url, api_key=args.api_key)
+                for record in run_trials(config, services.sim, planner, services.scorer, services.sims, ray=ray):
                     records.append(record)
                     bar.set_postfix(_postfix(records), refresh=False)
                     bar.update(1)

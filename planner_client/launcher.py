@@ -193,6 +193,11 @@ class _Restarting(Generic[C]):
                 self._reconnect()
         raise AssertionError("unreachable")
 
+    @property
+    def base_url(self) -> str:
+        """The server's URL now (a restart may have moved it)."""
+        return self.server.url
+
     def _reconnect(self) -> None:
         self.client.close()
         self.client = self._connect(self.server.url)

@@ -49,6 +49,7 @@ from firp.core.decisions import (DECISION_RULES, chosen_by_rule, conformal_thres
 from firp.core.tracing import configure_tracing, span, tracer_of
 from planner_client.backend import SimBackend, SimOutcome
 from planner_client.ik import IKFailure
+from planner_client.ray_trials import RayTrials, trials_on_ray
 from planner_client.recording import ExecutionRecorder, frames_of
 from planner_client.transport import TRACING_SERVICE_NAME, request_id
 
@@ -480,13 +481,20 @@ def in_trial_order(pending: list[int], sims: Sequence[SimBackend[Any]], planner:
         pool.shutdown(wait=True, cancel_futures=True)
 
 
-def run_trials(config: RunConfig, sim: SimBackend[Any], planner: Planner,
-               scorer: Scorer | None = None, sims: Sequence[SimBackend[Any]] = ()) -> Iterator[dict]:
+def run_trials(config: RunConfig, sim: SimBackend[Any] | None, planner: Planner,
+               scorer: Scorer | None = None, sims: Sequence[SimBackend[Any]] = (),
+               ray: RayTrials | None = None) -> Iterator[dict]:
     """Run the pending trials, appending one JSON line per finished trial; yields each record.
 
     Without a scorer only TAMP alone and the oracle line are run (``--no-score``). With ``sims`` (several
     sim backends, ``sim`` among them or not) the trials run in parallel, one on each (:func:`in_trial_order`);
-    every record equals the sequential run's but for its timings and request id."""
+    with ``ray`` they run on Ray actors, each with our world in its own process (``sim`` unused:
+    :mod:`planner_client.ray_trials`). Every record equals the sequential run's but for its timings and
+    request id."""
+    if ray is not None and config.record is not None:
+        raise RunSetupError("--record writes the executions on this machine's disk; it does not run with --ray")
+    if ray is None and sim is None and not sims:
+        raise ValueError("run_trials needs a sim backend (or ray)")
     model = scorer.model() if scorer is not None else None
     identity = run_identity(config, planner, model)
     if config.out.exists() and not config.resume:
@@ -509,8 +517,13 @@ def run_trials(config: RunConfig, sim: SimBackend[Any], planner: Planner,
         def run_one(trial: int, trial_sim: SimBackend[Any], trial_planner: Planner) -> dict:
             return run_trial(trial, config, trial_sim, trial_planner, scorer, identity, recorder, decision)
 
+        if ray is not None:
+            records_in_order = trials_on_ray(ray, pending, config=config, planner=planner, identity=identity,
+                                             decision=decision)
+        else:
+            records_in_order = in_trial_order(pending, list(sims) or [sim], planner, run_one)
         with config.out.open("a") as sink:
-            for record in in_trial_order(pending, list(sims) or [sim], planner, run_one):
+            for record in records_in_order:
                 if recorder is not None:
                     record["recorded_executions"] = record["executions"]
                 sink.write(json.dumps(record) + "\n")

@@ -35,6 +35,7 @@ class ServicePlan:
     ready_timeout: float = 120.0
     world: str = "mujoco"  # or "robosuite": which world's worker a launched sim is
     parallel: int = 1  # sim workers launched when sim_url is None: one trial runs on each at a time
+    launch_sims: bool = True  # False: the trials bring their own world (Ray actors), launch no sim worker
 
     @property
     def sim_urls(self) -> list[str]:
@@ -60,7 +61,7 @@ class ServicePlan:
 
 @dataclass
 class Services:
-    sim: Any  # a planner_client.backend.SimBackend: the first of ``sims``
+    sim: Any  # a planner_client.backend.SimBackend: the first of ``sims`` (None: no sim worker, Ray's trials)
     scorer: Scorer | None  # a ScoreClient, or a RestartingScorer when the run launched the service
     launcher: Launcher | None
     sims: list = field(default_factory=list)  # every sim backend; trials run on them in parallel
@@ -91,11 +92,12 @@ def open_services(plan: ServicePlan) -> Iterator[Services]:
             scorer = stack.enter_context(ScoreClient(plan.service_url, plan.api_key))
             scorer.wait_ready(plan.ready_timeout)
         launcher = None
-        if sim is None or bundle is not None:
-            launcher = stack.enter_context(Launcher(plan.out_dir, bundle=bundle, sim=sim is None,
+        launch_sim = sim is None and plan.launch_sims
+        if launch_sim or bundle is not None:
+            launcher = stack.enter_context(Launcher(plan.out_dir, bundle=bundle, sim=launch_sim,
                                                     ready_timeout=plan.ready_timeout, **plan.launcher_options()))
         sim_launchers = []
-        if sim is None:
+        if launch_sim:
             sim = launcher.sim()
             stack.callback(sim.close)
             sims.append(sim)
