@@ -136,8 +136,11 @@ def _set_projection_trainable(model: torch.nn.Module, trainable: bool) -> None:
 
 
 def train_model(cfg: TrainConfig, train: SequenceData, valid: SequenceData, checkpoint_dir: str | os.PathLike | None = None,
-                progress: bool = True) -> TrainResult:
-    """Train ``cfg.kind`` on ``train``; select the epoch by validation balanced accuracy; resumable."""
+                progress: bool = True, initial_state: dict[str, torch.Tensor] | None = None) -> TrainResult:
+    """Train ``cfg.kind`` on ``train``; select the epoch by validation balanced accuracy; resumable.
+
+    ``initial_state`` warm-starts from a trained model of the same config (a bundle member being refreshed):
+    its weights *and* its normalisation statistics, which the weights were trained against."""
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     model = build_model(cfg.kind, cfg.model)
@@ -145,6 +148,8 @@ def train_model(cfg: TrainConfig, train: SequenceData, valid: SequenceData, chec
         model.action_norm.fit(train.actions)  # training-set statistics, saved with the weights
     if getattr(model, "geometry", None) is not None:
         model.geometry.fit(train.actions)  # likewise for the grasp-frame description
+    if initial_state is not None:
+        model.load_state_dict(initial_state)
     optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     ckpt = Path(checkpoint_dir) if checkpoint_dir else None
     history: list[dict] = []

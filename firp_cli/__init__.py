@@ -38,6 +38,8 @@ COMMANDS: dict[str, tuple[str, Callable[[list[str], str], int]]] = {
              _run("firp.tune", prog=False)),
     "certify": ("measure a bundle's decision evidence on its validation episodes (into its manifest)",
                 _run("firp.bundle.evidence")),
+    "refresh": ("retrain the bundle on collected + recorded data; promote it only if not worse on held-out scenes",
+                _run("firp.refresh")),
     "evaluate": ("the evaluation protocol: every method on the same splits", _run("firp.evaluate", prog=False)),
     "serve": ("the scoring service (FastAPI): POST /v1/score, the V2 inference protocol", _run("service.__main__")),
     "sim": ("the sim worker (FastAPI over MuJoCo): start episodes, execute plans",

@@ -36,7 +36,7 @@ import torch
 from torch import Tensor
 
 from firp.bundle import Bundle, load_bundle
-from firp.core.bundle_format import MANIFEST_NAME
+from firp.core.bundle_format import MANIFEST_NAME, bundle_version
 from firp.core.decisions import EVIDENCE_KEY, is_informative
 from firp.core.contract import (
     CATEGORIES,
@@ -161,8 +161,7 @@ class ServiceModel:
         # The bundle's identity: manifest.json records the sha256 of every weights file, so its own
         # digest changes with any change to the bundle. A manifest may also carry a human version.
         digest = hashlib.sha256((bundle.path / MANIFEST_NAME).read_bytes()).hexdigest()
-        extra = bundle.manifest.get("extra") or {}
-        self.version = str(bundle.manifest.get("version") or extra.get("version") or digest[:12])
+        self.version = bundle_version(bundle.path, bundle.manifest)
         self.digest = digest
         self.warmup_ms: float | None = None
         self.statistics = InferenceStatistics()  # the V2 statistics extension's counters (service.statistics)

@@ -41,7 +41,7 @@ def test_the_list_of_commands_and_the_errors(capsys):
     listed = capsys.readouterr().out
     assert all(f"  {name} " in listed for name in COMMANDS)
     assert main(["juggle"]) == 2
-    assert "unknown command 'juggle'; one of run, collect, tune, certify, evaluate, serve, sim, robosuite" in \
+    assert "unknown command 'juggle'; one of run, collect, tune, certify, refresh, evaluate, serve, sim, robosuite" in \
         capsys.readouterr().err
 
 

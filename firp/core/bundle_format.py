@@ -17,7 +17,7 @@ import hashlib
 import os
 from pathlib import Path
 
-__all__ = ["BACKBONE_FILE", "BUNDLE_FORMAT", "BUNDLE_FORMAT_VERSION", "MANIFEST_NAME", "MODELS_DIR_ENV",
+__all__ = ["BACKBONE_FILE", "bundle_version", "BUNDLE_FORMAT", "BUNDLE_FORMAT_VERSION", "MANIFEST_NAME", "MODELS_DIR_ENV",
            "MissingBundle", "models_dir", "require_bundle", "sha256_file", "shipped_bundle_dir"]
 
 BUNDLE_FORMAT = "firp-ensemble-bundle"
@@ -31,6 +31,15 @@ MODELS_DIR_ENV = "FIRP_MODELS_DIR"
 
 class MissingBundle(FileNotFoundError):
     """No bundle where one is needed; the message says how to make one."""
+
+
+def bundle_version(bundle_dir: str | os.PathLike, manifest: dict) -> str:
+    """The version a service reports for a bundle: the manifest's own ``version`` (or ``extra.version``)
+    if it names one, else the first 12 hex digits of the manifest's sha256 -- which records the sha256 of
+    every weights file, so any change to the bundle changes it."""
+    extra = manifest.get("extra") or {}
+    named = manifest.get("version") or extra.get("version")
+    return str(named) if named else sha256_file(Path(bundle_dir) / MANIFEST_NAME)[:12]
 
 
 def sha256_file(path: str | os.PathLike) -> str:

@@ -27,7 +27,7 @@ from collections.abc import Sequence
 import numpy as np
 
 __all__ = ["DECISION_RULES", "EVIDENCE_KEY", "balanced_accuracy_interval", "chosen_by_rule", "conformal_threshold",
-           "decision_evidence", "first_accepted", "highest", "is_informative"]
+           "decision_evidence", "first_accepted", "highest", "is_informative", "paired_comparison"]
 
 EVIDENCE_KEY = "decision_evidence"  # the manifest's section
 #: the client's rules: the paper's (first plan whose score reaches the bundle's threshold, else the last
@@ -144,3 +144,40 @@ def chosen_by_rule(rule: str, scores: Sequence[float], threshold: float, conform
             raise ValueError("the conformal rule needs the bundle's failure scores (decision_evidence)")
         return first_accepted(scores, conformal)
     raise ValueError(f"unknown decision rule {rule!r}; one of {DECISION_RULES}")
+
+
+def paired_comparison(labels: Sequence[bool] | np.ndarray, groups: Sequence[str], *, new_scores: Sequence[float],
+                      new_threshold: float, current_scores: Sequence[float], current_threshold: float,
+                      resamples: int = 2000, level: float = 0.95, seed: int = 0) -> dict:
+    """Two bundles on the same held-out episodes: each one's balanced accuracy at its own threshold, the
+    difference (new - current) and its interval.
+
+    Paired and clustered: each resample draws whole scenes (``groups``: a scene's candidates share their
+    image and their physics, so they are not independent) with replacement and scores both bundles on the
+    same draw, so what the two have in common cancels out of the difference. Resamples that lack a class
+    are drawn again (they have no balanced accuracy)."""
+    y = np.asarray(labels, dtype=bool)
+    new, current = np.asarray(new_scores, dtype=float), np.asarray(current_scores, dtype=float)
+    if not (y.shape == new.shape == current.shape == (len(groups),)) or y.ndim != 1:
+        raise ValueError("labels, groups and both bundles' scores must be vectors of one length")
+    if y.all() or not y.any():
+        raise ValueError("the held-out episodes need successes and failures")
+    new_pred, current_pred = new >= new_threshold, current >= current_threshold
+    point_new, point_current = float(_balanced_accuracy(y, new_pred)), float(_balanced_accuracy(y, current_pred))
+    names, members = np.unique(np.asarray(groups), return_inverse=True)
+    by_group = [np.flatnonzero(members == g) for g in range(len(names))]
+    rng = np.random.default_rng(seed)
+    deltas: list[float] = []
+    while len(deltas) < resamples:
+        pick = np.concatenate([by_group[g] for g in rng.integers(0, len(by_group), len(by_group))])
+        yy = y[pick]
+        if yy.all() or not yy.any():
+            continue
+        deltas.append(float(_balanced_accuracy(yy, new_pred[pick]) - _balanced_accuracy(yy, current_pred[pick])))
+    tail = (1.0 - level) / 2.0
+    return {"new_balanced_accuracy": point_new, "current_balanced_accuracy": point_current,
+            "difference": point_new - point_current,
+            "interval": [float(np.quantile(deltas, tail)), float(np.quantile(deltas, 1.0 - tail))],
+            "level": level, "resamples": resamples, "n_episodes": int(len(y)), "n_scenes": int(len(names)),
+            "n_successes": int(y.sum()), "n_failures": int((~y).sum()),
+            "method": "paired percentile bootstrap over held-out scenes, each bundle at its own threshold"}
