@@ -70,6 +70,9 @@ def add_run_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                           "accepted failures at --alpha, from the bundle's validation failures)")
     run.add_argument("--alpha", type=open_unit_float("--alpha"), default=0.1,
                      help="the conformal rule's false-accept rate (default 0.1)")
+    run.add_argument("--explore", type=int_in_range("--explore", 0, 6), default=0, metavar="K",
+                     help="also execute up to K more candidates, those the ensemble is least sure of first (score "
+                          "nearest the threshold): labels where the model is weakest, for --record (default 0)")
     run.add_argument("--no-compare-rules", action="store_true",
                      help="skip scoring every candidate for the summary's side-by-side table of the rules")
     run.add_argument("--replan-on-uninformative", action="store_true",
@@ -264,6 +267,8 @@ def run_command(args: argparse.Namespace, parser: argparse.ArgumentParser, argv:
     planner = _world_planner(args, parser, argv)
     if args.resume and args.out is None:
         parser.error("--resume needs --out: the run file to continue")
+    if args.explore and args.no_score:
+        parser.error("--explore picks the candidates the ensemble is least sure of: it needs scores, drop --no-score")
     if args.bundle is not None and args.service and not args.no_score:
         parser.error("--bundle is for the scoring service this run launches; with --service the running service "
                      "has loaded its own bundle")
@@ -282,7 +287,7 @@ def run_command(args: argparse.Namespace, parser: argparse.ArgumentParser, argv:
     config = RunConfig(task=args.task, trials=args.trials, seed=args.seed, max_iterations=args.max_iterations,
                        oracle=not args.no_oracle, out=out, resume=args.resume, threshold=args.threshold,
                        record=args.record, world=args.world, rule=args.rule, alpha=args.alpha,
-                       compare_rules=not args.no_compare_rules,
+                       compare_rules=not args.no_compare_rules, explore=args.explore,
                        replan_on_uninformative=args.replan_on_uninformative)
     ray = _ray_trials(args, parser)
     plan = ServicePlan(task=args.task, out_dir=out.parent, sim_url=args.sim, service_url=args.service,

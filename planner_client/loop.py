@@ -21,6 +21,10 @@ One trial (scene seed ``seed + trial``):
 2. **TAMP alone** -- the planner's first plan, executed without scoring, on the same episode.
 3. **Oracle** -- the first candidate (same order, same budget) whose plan succeeds when executed:
    the ceiling of replanning over the planner's candidates within this budget.
+4. **Exploration** (``explore`` > 0, with a scorer) -- besides all of the above, up to ``explore`` more
+   candidates are executed, those the ensemble is least sure of first (score nearest the threshold), so
+   a recording run (``--record``) lands labels where the model is weakest. The record's
+   ``candidate_outcomes`` then holds the label of every candidate executed, beside ``candidate_scores``.
 
 Every execution starts from the episode's initial state and the simulator is deterministic, so a
 plan is planned and executed at most once per trial and the three lines share executions (the
@@ -69,6 +73,7 @@ class RunConfig:
     rule: str = "threshold"  # firp.core.decisions.DECISION_RULES: the paper's, the ranking, the conformal one
     alpha: float = 0.1  # the conformal rule's bound on the false-accept rate
     compare_rules: bool = True  # also score every candidate, so the summary shows every rule side by side
+    explore: int = 0  # execute up to this many more candidates, the least sure first (labels for --record)
     replan_on_uninformative: bool = False  # replan even when the bundle is not shown better than chance
 
 
@@ -132,6 +137,8 @@ def run_identity(config: RunConfig, planner: Planner, model: dict | None, scorin
     if scoring:
         identity.update(rule=config.rule, alpha=config.alpha, compare_rules=config.compare_rules,
                         replan_on_uninformative=config.replan_on_uninformative)
+        if config.explore:  # absent when off, so runs recorded before the option resume unchanged
+            identity["explore"] = config.explore
     return json.loads(json.dumps(identity))  # as it reads back from the file
 
 
@@ -392,6 +399,25 @@ def replan_until_accepted(work: TrialWork, scorer: Scorer, orders: list[Hashable
     return executed_part(work, order, accepted, scores, used_threshold, float(answer["threshold"]))
 
 
+def explore(work: TrialWork, scorer: Scorer, orders: list[Hashable], budget: int, threshold: float) -> dict:
+    """Execute up to ``budget`` candidates not executed yet, those whose score lies nearest ``threshold``
+    first (the ensemble's least sure), so their labels are recorded where the model is weakest."""
+    if all(c in work.scores for c in orders if work.plan(c) is not None):
+        plannable = [c for c in orders if work.plans[c] is not None]
+    else:
+        plannable, _ = score_every_candidate(work, scorer, orders)
+    waiting = sorted((c for c in plannable if c not in work.outcomes), key=lambda c: abs(work.scores[c] - threshold))
+    chosen = waiting[:budget]
+    for candidate in chosen:
+        work.execute(candidate)
+    return {"explored": [work.planner.describe(c) for c in chosen]}
+
+
+def candidate_outcomes(work: TrialWork) -> dict:
+    """The label of every candidate executed in the trial, keyed as ``candidate_scores`` is."""
+    return {json.dumps(work.planner.describe(c)): bool(o.success) for c, o in work.outcomes.items()}
+
+
 def oracle_line(work: TrialWork, orders: list[Hashable]) -> dict:
     """The first candidate whose plan succeeds in simulation (executions already made are reused)."""
     for examined, order in enumerate(orders, start=1):
@@ -436,6 +462,10 @@ def _run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: Pla
         record["tamp_reused_firp_execution"] = record["firp_order"] == planner.describe(orders[0])
     if config.oracle:
         record.update(oracle_line(work, orders))
+    if scorer is not None and config.explore:
+        threshold = record["service_threshold"] if config.threshold is None else config.threshold
+        record.update(explore(work, scorer, orders, config.explore, threshold))
+        record["candidate_outcomes"] = candidate_outcomes(work)
     record["executions"] = len(work.outcomes)
     if work.unplannable:
         record["unplannable"] = {str(planner.describe(c)): why for c, why in work.unplannable.items()}

@@ -629,3 +629,24 @@ def test_cli_parallel_must_match_the_sim_urls_given(tmp_path, capsys):
     assert exit_.value.code == 2
     assert "--parallel: with --sim one trial runs on each given sim worker at a time; 3 asked, 2 URL(s)" in \
         capsys.readouterr().err
+
+
+def test_exploration_executes_the_least_sure_candidates_and_records_every_label(tmp_path, sim_and_planner, scorer):
+    sim, planner = sim_and_planner
+    threshold = 0.5
+    records = list(run_trials(RunConfig(trials=2, out=tmp_path / "run.jsonl", max_iterations=4, threshold=threshold,
+                                        seed=60, explore=4), sim, planner, scorer))
+    for record in records:
+        scores, outcomes = record["candidate_scores"], record["candidate_outcomes"]
+        assert outcomes.keys() == scores.keys()  # with a budget of 4 every plannable candidate is executed
+        assert record["executions"] == len(outcomes)
+        explored = [scores[json.dumps(order)] for order in record["explored"]]
+        assert [abs(s - threshold) for s in explored] == sorted(abs(s - threshold) for s in explored)
+        assert outcomes[json.dumps(record["firp_order"])] == record["firp_success"]
+    assert records[0]["run"]["explore"] == 4
+
+
+def test_cli_exploration_needs_scores(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["run", "--trials", "1", "--no-score", "--explore", "2", "--out", str(tmp_path / "r.jsonl")])
+    assert "--explore picks the candidates the ensemble is least sure of" in capsys.readouterr().err
