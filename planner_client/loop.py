@@ -212,6 +212,22 @@ class TrialWork:
     candidates: list[Hashable] = field(default_factory=list)
     scores: dict[Hashable, float] = field(default_factory=dict)
     model: dict | None = None
+    # the bundle version that answered each score: the run's model unless a hot swap came mid-run
+    versions: dict[Hashable, str] = field(default_factory=dict)
+
+    def keep_score(self, candidate: Hashable, score: float, answer: dict) -> None:
+        """A candidate's first score and the version that gave it (a score kept before stays)."""
+        if candidate not in self.scores:
+            self.scores[candidate] = score
+            version = (answer.get("model") or {}).get("version")
+            if version is not None:
+                self.versions[candidate] = str(version)
+
+    def scored_by(self, candidate: Hashable) -> dict | None:
+        """Name and version of the bundle that scored ``candidate`` (None: not scored)."""
+        if candidate not in self.scores:
+            return None
+        return {**(self.model or {}), **({"version": self.versions[candidate]} if candidate in self.versions else {})}
 
     def plan(self, candidate: Hashable) -> np.ndarray | None:
         """The candidate's plan, or None when the planner cannot plan it (the reason is kept)."""
@@ -232,7 +248,7 @@ class TrialWork:
         started = time.perf_counter()
         answer = scorer.score(self.episode.image_b64, self.plans[candidate], self.episode.task)
         self.timing["score_s"] += time.perf_counter() - started
-        self.scores.setdefault(candidate, float(answer["score"]))
+        self.keep_score(candidate, float(answer["score"]), answer)
         return answer
 
     def execute(self, candidate: Hashable) -> SimOutcome:
@@ -250,7 +266,7 @@ class TrialWork:
                 self.recorder.record(trial=self.trial, place=self.candidates.index(candidate), episode=self.episode,
                                      candidate=str(self.planner.describe(candidate)), plan=plan, outcome=outcome,
                                      frames=frames_of(outcome), score=self.scores.get(candidate),
-                                     model=self.model if candidate in self.scores else None)
+                                     model=self.scored_by(candidate))
             self.timing["execute_s"] += time.perf_counter() - started
         return self.outcomes[candidate]
 
@@ -307,7 +323,7 @@ def score_every_candidate(work: TrialWork, scorer: Scorer, orders: list[Hashable
     answer = scorer.score_batch(work.episode.image_b64, [work.plans[c] for c in plannable], work.episode.task)
     work.timing["score_s"] += time.perf_counter() - started
     for candidate, result in zip(plannable, answer["results"]):
-        work.scores.setdefault(candidate, float(result["score"]))
+        work.keep_score(candidate, float(result["score"]), answer)
     return plannable, answer
 
 
@@ -466,6 +482,9 @@ def _run_trial(trial: int, config: RunConfig, sim: SimBackend[Any], planner: Pla
         threshold = record["service_threshold"] if config.threshold is None else config.threshold
         record.update(explore(work, scorer, orders, config.explore, threshold))
         record["candidate_outcomes"] = candidate_outcomes(work)
+    run_version = (identity.get("model") or {}).get("version")
+    if any(v != run_version for v in work.versions.values()):  # a bundle swapped in while the run went on
+        record["scored_by"] = {json.dumps(planner.describe(c)): v for c, v in work.versions.items()}
     record["executions"] = len(work.outcomes)
     if work.unplannable:
         record["unplannable"] = {str(planner.describe(c)): why for c, why in work.unplannable.items()}

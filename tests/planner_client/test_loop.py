@@ -650,3 +650,37 @@ def test_cli_exploration_needs_scores(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["run", "--trials", "1", "--no-score", "--explore", "2", "--out", str(tmp_path / "r.jsonl")])
     assert "--explore picks the candidates the ensemble is least sure of" in capsys.readouterr().err
+
+
+class SwappedMidRun(ScriptedScorer):
+    """The run starts on version 1 (``/v1/model``); once ``swapped`` is set, version 2 answers (a hot swap)."""
+
+    swapped = False
+
+    def _version(self) -> dict:
+        return {"name": "scripted", "version": "2" if self.swapped else "1"}
+
+    def score(self, image_b64: str, plan, task: str) -> dict:
+        self.plans.clear()  # every trial replays the same script
+        return {**super().score(image_b64, plan, task), "model": self._version()}
+
+    def score_batch(self, image_b64: str, plans, task: str) -> dict:
+        return {**super().score_batch(image_b64, plans, task), "model": self._version()}
+
+
+def test_records_name_the_version_that_scored_when_a_swap_comes_mid_run(tmp_path, sim_and_planner):
+    sim, planner = sim_and_planner
+    scorer = SwappedMidRun([0.9] * 6, threshold=0.5)
+    trials = run_trials(RunConfig(trials=2, out=tmp_path / "run.jsonl", max_iterations=3, record=tmp_path / "rec"),
+                        sim, planner, scorer)
+    first = next(trials)
+    scorer.swapped = True
+    (second,) = list(trials)
+    assert "scored_by" not in first  # the run's model scored everything: its identity says so
+    assert set(second["scored_by"].values()) == {"2"} and second["run"]["model"]["version"] == "1"
+    from firp.core.episodes import EpisodeDataset
+
+    with EpisodeDataset(tmp_path / "rec" / "executions.h5") as ds:
+        versions = {ds.demo_attrs(n)["trial"]: ds.demo_attrs(n)["scored_by"]["version"]
+                    for n in ds.demo_names if "scored_by" in ds.demo_attrs(n)}
+    assert versions == {0: "1", 1: "2"}
