@@ -5,8 +5,10 @@ Why: the loop executes several candidates of the same scene and the sim worker l
 (``firp run --record``) -- the data a scorer that must rank a scene's candidates learns from best. A
 refresh must never make the product worse, so:
 
-1. **Held out first.** A fraction of the *recorded* scenes (all their candidates: a scene's candidates share
-   an image and its physics) is set aside before anything trains; both bundles are judged on it.
+1. **Held out first.** A fraction of the scenes of the newest recording (the last ``--data`` file with
+   recorded executions; all their candidates: a scene's candidates share an image and its physics) is set
+   aside before anything trains; both bundles are judged on it. Neither has seen those scenes: an
+   earlier recording may have trained the bundle in use.
 2. **Train** every member of the current bundle again (its kind and model config) on everything else,
    warm-started from its weights by default; early stopping and the new ensemble's threshold use a
    validation split of scenes from the training pool, as an export does.
@@ -59,12 +61,13 @@ class Pool:
     scenes: list[str]  # a recorded episode's scene_id; a collected episode is a scene of its own
     recorded: np.ndarray  # (N,) bool: from the loop's recordings (firp run --record)
     sources: list[dict]  # per file: path, content hash, episodes, recorded or not
+    source: np.ndarray  # (N,) int: which --data file each episode came from
 
 
 def load_pool(paths: list[Path], bundle, cache_dir: Path, progress: bool) -> Pool:
     """The datasets' features through the bundle's own backbone, concatenated; plans must fit the bundle."""
-    parts, scenes, recorded, sources = [], [], [], []
-    for path in paths:
+    parts, scenes, recorded, sources, source = [], [], [], [], []
+    for k, path in enumerate(paths):
         data = load_sequences(path, bundle.encoder_config, cache_dir, progress=progress)
         T = int(data.actions.shape[1])
         if not bundle.t_range.t_min <= T <= bundle.t_range.t_max:
@@ -79,13 +82,14 @@ def load_pool(paths: list[Path], bundle, cache_dir: Path, progress: bool) -> Poo
         from_loop = [i is not None for i in ids]
         scenes += [i if i is not None else f"{path.name}:{name}" for i, name in zip(ids, data.demo_names)]
         recorded += from_loop
+        source += [k] * len(from_loop)
         parts.append(replace(data, demo_names=[f"{path.name}:{n}" for n in data.demo_names]))
         sources.append({"path": os.fspath(path), "sha256": data.dataset_hash, "episodes": len(data),
                         "recorded_episodes": int(sum(from_loop))})
     joined = SequenceData(torch.cat([p.features for p in parts]), torch.cat([p.actions for p in parts]),
                           torch.cat([p.labels for p in parts]), "+".join(p.dataset_hash[:12] for p in parts),
                           [n for p in parts for n in p.demo_names])
-    return Pool(joined, scenes, np.asarray(recorded, dtype=bool), sources)
+    return Pool(joined, scenes, np.asarray(recorded, dtype=bool), sources, np.asarray(source, dtype=int))
 
 
 def scene_split(scenes: list[str], candidates: np.ndarray, fraction: float, seed: int) -> np.ndarray:
@@ -109,11 +113,14 @@ def scene_split(scenes: list[str], candidates: np.ndarray, fraction: float, seed
 
 
 def held_out_scenes(pool: Pool, fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """(training pool, held out): ``fraction`` of the recorded scenes, whole, held out."""
-    recorded = np.flatnonzero(pool.recorded)
-    if len(recorded) == 0:
+    """(training pool, held out): ``fraction`` of the scenes of the *last* ``--data`` file that holds
+    recorded executions, whole, held out. Only the newest recording: the bundle in use may have been
+    trained on an earlier round's scenes, and a comparison on them would favour it."""
+    if not pool.recorded.any():
         raise ValueError("--data: none of the datasets holds recorded executions (firp run --record DIR gives "
                          "DIR/executions.h5); the refresh is judged on held-out recorded scenes")
+    newest = pool.source[pool.recorded].max()
+    recorded = np.flatnonzero(pool.recorded & (pool.source == newest))
     held = scene_split(pool.scenes, recorded, fraction, seed)
     labels = pool.data.labels.numpy()[held] > 0.5
     if labels.all() or not labels.any():
@@ -239,7 +246,8 @@ def main(argv: list[str] | None = None, prog: str = "firp refresh") -> int:
                              "--record); repeat the flag for several")
     parser.add_argument("--out", type=Path, required=True, help="where the refreshed bundle is written")
     parser.add_argument("--held-out-fraction", type=open_unit_float("--held-out-fraction"), default=0.3,
-                        help="share of the recorded scenes held out to judge both bundles (default 0.3)")
+                        help="share of the newest recording's scenes (the last --data file with recorded "
+                             "executions) held out to judge both bundles (default 0.3)")
     parser.add_argument("--epochs", type=int_in_range("--epochs", 1, 1000), default=20)
     parser.add_argument("--lr", type=open_unit_float("--lr"), default=3e-4)
     parser.add_argument("--no-warm-start", action="store_true", help="train the members from scratch")

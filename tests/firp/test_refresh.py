@@ -133,3 +133,21 @@ def test_paired_comparison_resamples_whole_scenes_and_is_zero_for_the_same_score
     with pytest.raises(ValueError, match="successes and failures"):
         paired_comparison([True] * 3, ["a", "b", "c"], new_scores=[1, 1, 1], new_threshold=0.5,
                           current_scores=[0, 0, 0], current_threshold=0.5)
+
+
+def test_held_out_scenes_come_whole_from_the_newest_recording_only():
+    import torch
+
+    from firp.data import SequenceData
+    from firp.refresh import Pool, held_out_scenes
+
+    # 4 collected episodes, then two recordings of 6 scenes x 2 candidates (one success, one failure each)
+    scenes = [f"c{i}" for i in range(4)] + [f"r1/{i // 2}" for i in range(12)] + [f"r2/{i // 2}" for i in range(12)]
+    labels = torch.tensor([i % 2 for i in range(28)], dtype=torch.float32)
+    data = SequenceData(torch.zeros(28, 2, 3), torch.zeros(28, 2, 16), labels, "h", [str(i) for i in range(28)])
+    pool = Pool(data, scenes, np.array([False] * 4 + [True] * 24), [], np.array([0] * 4 + [1] * 12 + [2] * 12))
+    rest, held = held_out_scenes(pool, fraction=0.5, seed=0)
+    held_scenes = {scenes[i] for i in held}
+    assert held_scenes and all(s.startswith("r2/") for s in held_scenes)
+    assert len(held) == 2 * len(held_scenes) and not held_scenes & {scenes[i] for i in rest}
+    assert sorted([*rest, *held]) == list(range(28))
