@@ -264,6 +264,7 @@ def _ray_trials(args: argparse.Namespace, parser: argparse.ArgumentParser):
 
 
 def run_command(args: argparse.Namespace, parser: argparse.ArgumentParser, argv: list[str]) -> int:
+    ray = _ray_trials(args, parser)  # before the world's planner: robosuite's would hand the run to its environment
     planner = _world_planner(args, parser, argv)
     if args.resume and args.out is None:
         parser.error("--resume needs --out: the run file to continue")
@@ -289,7 +290,6 @@ def run_command(args: argparse.Namespace, parser: argparse.ArgumentParser, argv:
                        record=args.record, world=args.world, rule=args.rule, alpha=args.alpha,
                        compare_rules=not args.no_compare_rules, explore=args.explore,
                        replan_on_uninformative=args.replan_on_uninformative)
-    ray = _ray_trials(args, parser)
     plan = ServicePlan(task=args.task, out_dir=out.parent, sim_url=args.sim, service_url=args.service,
                        bundle=args.bundle, score=not args.no_score, api_key=args.api_key,
                        ready_timeout=args.ready_timeout, world=args.world, parallel=args.parallel or 1,
