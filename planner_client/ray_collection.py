@@ -18,17 +18,13 @@
 from __future__ import annotations
 
 import os
-from collections import deque
 from typing import Callable, Iterator
 
 from firp.core.episodes import EpisodeRecord, write_episode_part
-from firp.core.ray_cluster import ray_session
+from firp.core.ray_cluster import IN_FLIGHT_PER_ACTOR, as_completed_on_actors, ray_session
 from planner_client.collect import attempt_episode
 
 __all__ = ["EpisodeSimulator", "IN_FLIGHT_PER_ACTOR", "simulate_on_ray"]
-
-#: calls queued on each actor: one running, one waiting, so an actor never idles between episodes
-IN_FLIGHT_PER_ACTOR = 2
 
 
 class EpisodeSimulator:
@@ -59,21 +55,7 @@ def simulate_on_ray(*, address: str, actors: int, pending: list[int], parts_dir,
                    for _ in range(max(1, min(actors, len(pending))))]
         if on_actors is not None:
             on_actors(handles)
-        queue = deque(pending)
-        in_flight: dict = {}
-
-        def submit(actor) -> None:
-            if queue:
-                in_flight[actor.simulate.remote(queue.popleft())] = actor
-
-        for actor in handles:
-            for _ in range(IN_FLIGHT_PER_ACTOR):
-                submit(actor)
-        while in_flight:
-            (ref,), _ = ray.wait(list(in_flight), num_returns=1)
-            actor = in_flight.pop(ref)
-            index, record = ray.get(ref)
-            submit(actor)
+        for index, record in as_completed_on_actors(ray, handles, pending, lambda actor, i: actor.simulate.remote(i)):
             if isinstance(record, str):  # unplannable scene: no episode
                 yield index, None
                 continue

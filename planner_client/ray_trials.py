@@ -19,16 +19,12 @@ from __future__ import annotations
 
 import copy
 import os
-from collections import deque
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator
 
-from firp.core.ray_cluster import ray_session
+from firp.core.ray_cluster import as_completed_on_actors, ray_session
 
 __all__ = ["RayTrials", "TrialRunner", "trials_on_ray"]
-
-#: trials queued on each actor: one running, one waiting, so an actor never idles between trials
-IN_FLIGHT_PER_ACTOR = 2
 
 
 @dataclass(frozen=True)
@@ -80,24 +76,10 @@ def trials_on_ray(spec: RayTrials, pending: list[int], *, config: Any, planner: 
                    for _ in range(max(1, min(spec.actors, len(pending))))]
         if on_actors is not None:
             on_actors(handles)
-        queue = deque(pending)
-        in_flight: dict = {}
         finished: dict[int, dict] = {}
         order = iter(pending)
         due = next(order)
-
-        def submit(actor) -> None:
-            if queue:
-                in_flight[actor.run.remote(queue.popleft())] = actor
-
-        for actor in handles:
-            for _ in range(IN_FLIGHT_PER_ACTOR):
-                submit(actor)
-        while in_flight:
-            (ref,), _ = ray.wait(list(in_flight), num_returns=1)
-            actor = in_flight.pop(ref)
-            trial, record = ray.get(ref)
-            submit(actor)
+        for trial, record in as_completed_on_actors(ray, handles, pending, lambda actor, t: actor.run.remote(t)):
             finished[trial] = record
             while due is not None and due in finished:
                 yield finished.pop(due)

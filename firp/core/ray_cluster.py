@@ -8,10 +8,14 @@ imported only here, when a job asks for it (the ``ray`` extra).
 
 from __future__ import annotations
 
+from collections import deque
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Any, Callable, Iterable, Iterator
 
-__all__ = ["ray_session"]
+__all__ = ["IN_FLIGHT_PER_ACTOR", "as_completed_on_actors", "ray_session"]
+
+#: calls queued on each actor: one running, one waiting, so an actor never idles between calls
+IN_FLIGHT_PER_ACTOR = 2
 
 
 @contextmanager
@@ -34,3 +38,25 @@ def ray_session(address: str, cpus: int) -> Iterator:
     finally:
         if connected_here:
             ray.shutdown()
+
+
+def as_completed_on_actors(ray: Any, actors: list, items: Iterable, call: Callable[[Any, Any], Any]) -> Iterator[Any]:
+    """``call(actor, item)`` (a remote call: an object ref) for every item, fed to ``actors`` so that
+    each has :data:`IN_FLIGHT_PER_ACTOR` calls queued; yields each call's result as it completes (in
+    completion order), the finished actor's next call submitted first."""
+    waiting = deque(items)
+    in_flight: dict = {}
+
+    def submit(actor: Any) -> None:
+        if waiting:
+            in_flight[call(actor, waiting.popleft())] = actor
+
+    for actor in actors:
+        for _ in range(IN_FLIGHT_PER_ACTOR):
+            submit(actor)
+    while in_flight:
+        (ref,), _ = ray.wait(list(in_flight), num_returns=1)
+        actor = in_flight.pop(ref)
+        result = ray.get(ref)
+        submit(actor)
+        yield result
