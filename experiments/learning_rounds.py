@@ -39,20 +39,63 @@ EXIT_KEPT = 3  # firp refresh: the bundle in use stays
 EXIT_REFUSED = 2  # firp refresh: the data cannot judge a refresh (said on its last line)
 
 
+def _candidate_pairs(records: list[dict]) -> list[tuple[list[float], list[bool]]]:
+    """Per trial (one scene), the executed candidates' scores and labels."""
+    pairs = []
+    for r in records:
+        scored = r.get("candidate_scores", {})
+        outcomes = {k: bool(v) for k, v in (r.get("candidate_outcomes") or {}).items() if k in scored}
+        pairs.append(([scored[k] for k in outcomes], list(outcomes.values())))
+    return pairs
+
+
 def candidate_auc(records: list[dict]) -> float | None:
     """ROC AUC of the candidates' scores against their labels, pooled over the run's trials (every
     candidate executed; ``--explore`` makes that all of a scene's plannable ones)."""
     from sklearn.metrics import roc_auc_score
 
-    scores, labels = [], []
-    for r in records:
-        for key, label in (r.get("candidate_outcomes") or {}).items():
-            if key in r.get("candidate_scores", {}):
-                scores.append(r["candidate_scores"][key])
-                labels.append(bool(label))
+    pairs = _candidate_pairs(records)
+    scores = [s for ss, _ in pairs for s in ss]
+    labels = [y for _, ys in pairs for y in ys]
     if len(set(labels)) < 2:
         return None
     return float(roc_auc_score(labels, scores))
+
+
+def candidate_auc_interval(records: list[dict], resamples: int = 1000, level: float = 0.95,
+                           seed: int = 0) -> list[float] | None:
+    """Percentile bootstrap interval of :func:`candidate_auc` over scenes (a scene's candidates share an
+    image and its physics, so whole trials are drawn): how far two runs' AUCs on different seeds may lie
+    apart by the draw of scenes alone."""
+    from sklearn.metrics import roc_auc_score
+
+    pairs = _candidate_pairs(records)
+    if candidate_auc(records) is None:
+        return None
+    rng = np.random.default_rng(seed)
+    values: list[float] = []
+    for _ in range(50 * resamples):  # bounded: a draw of one class only is drawn again
+        if len(values) == resamples:
+            break
+        draw = [pairs[i] for i in rng.integers(0, len(pairs), len(pairs))]
+        labels = [y for _, ys in draw for y in ys]
+        if len(set(labels)) == 2:
+            values.append(float(roc_auc_score(labels, [s for ss, _ in draw for s in ss])))
+    tail = (1.0 - level) / 2.0
+    return [float(np.quantile(values, tail)), float(np.quantile(values, 1.0 - tail))]
+
+
+def success_interval(successes: int, n: int, level: float = 0.95) -> list[float]:
+    """Wilson score interval of a success rate (the rows' rates are over 100 scenes or so)."""
+    from statistics import NormalDist
+
+    if n == 0:
+        return [float("nan"), float("nan")]
+    z = NormalDist().inv_cdf(0.5 + level / 2.0)
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return [max(0.0, float(centre - half)), min(1.0, float(centre + half))]
 
 
 def run_row(name: str, records: list[dict]) -> dict:
@@ -69,7 +112,8 @@ def run_row(name: str, records: list[dict]) -> dict:
             "rank_success": rate([r["rules"]["rank"]["success"] for r in records if "rules" in r]),
             "tamp_success": rate([r["tamp_success"] for r in records]),
             "oracle_success": rate([r["oracle_success"] for r in records if "oracle_success" in r]),
-            "candidate_auc": candidate_auc(records),
+            "loop_success_interval": success_interval(sum(r["firp_success"] for r in records), len(records)),
+            "candidate_auc": candidate_auc(records), "candidate_auc_interval": candidate_auc_interval(records),
             "candidates_executed": int(sum(len(r.get("candidate_outcomes") or {}) for r in records))}
 
 
@@ -97,8 +141,10 @@ def plot(rows: list[dict], path: Path, task: str) -> None:
     left.set_ylabel("success (%)")
     left.set_xticks(x, [r["run"] for r in rows])
     right = left.twinx()
-    right.plot(x, [r["candidate_auc"] if r["candidate_auc"] is not None else np.nan for r in rows], "m-s",
-               label="candidates' ROC AUC")
+    auc = np.array([r["candidate_auc"] if r["candidate_auc"] is not None else np.nan for r in rows])
+    bands = np.array([r.get("candidate_auc_interval") or [np.nan, np.nan] for r in rows])
+    right.errorbar(x, auc, yerr=[auc - bands[:, 0], bands[:, 1] - auc], fmt="m-s", capsize=3,
+                   label="candidates' ROC AUC (95% over scenes)")
     right.set_ylabel("candidates' ROC AUC")
     lines = left.get_legend_handles_labels()[0] + right.get_legend_handles_labels()[0]
     labels = left.get_legend_handles_labels()[1] + right.get_legend_handles_labels()[1]
@@ -113,12 +159,17 @@ def markdown(rows: list[dict], refreshes: list[dict], commands: list[str]) -> st
     def pct(v: float) -> str:
         return "—" if v != v else f"{100 * v:.0f}%"
 
-    lines = ["| run | seeds | bundle version | replans | TAMP + FIRP (paper's rule) | ranking | TAMP alone | oracle "
-             "| candidates' AUC | candidates executed |", "|---|---|---|---|---|---|---|---|---|---|"]
+    def interval(v: list[float] | None, fmt) -> str:
+        return "" if not v else f" [{fmt(v[0])}, {fmt(v[1])}]"
+
+    lines = ["| run | seeds | bundle version | replans | TAMP + FIRP (paper's rule) [95%] | ranking | TAMP alone | oracle "
+             "| candidates' AUC [95%] | candidates executed |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        auc = "—" if r["candidate_auc"] is None else f"{r['candidate_auc']:.3f}"
+        auc = ("—" if r["candidate_auc"] is None else
+               f"{r['candidate_auc']:.3f}{interval(r.get('candidate_auc_interval'), lambda v: f'{v:.3f}')}")
+        loop = pct(r["loop_success"]) + interval(r.get("loop_success_interval"), pct)
         lines.append(f"| {r['run']} | {r['seeds'][0]}–{r['seeds'][1]} | {r['model_version']} | "
-                     f"{'yes' if r['replans'] else 'no (uninformative: TAMP first)'} | {pct(r['loop_success'])} | "
+                     f"{'yes' if r['replans'] else 'no (uninformative: TAMP first)'} | {loop} | "
                      f"{pct(r['rank_success'])} | {pct(r['tamp_success'])} | {pct(r['oracle_success'])} | {auc} | "
                      f"{r['candidates_executed']} |")
     lines += ["", "| refresh | held-out episodes (scenes) | current | refreshed | difference [95% interval] | verdict |",
@@ -159,6 +210,8 @@ def main(argv: list[str] | None = None) -> int:
     with Launcher(args.out / "service", bundle=Path(state["bundle"]), sim=False, ready_timeout=300) as services:
         url = services.service_server.url
         recorded: list[Path] = []
+        ran = False  # whether this call ran any step (else it only reads the files back)
+        in_use = str(args.bundle)  # the bundle each round ran with: the last promoted refresh before it
         for k in range(args.rounds + 1):
             final = k == args.rounds
             run_dir = args.out / ("final" if final else f"round-{k}")
@@ -168,10 +221,9 @@ def main(argv: list[str] | None = None) -> int:
                    "--seed", str(args.seed + k * args.trials), "--service", url, "--parallel", str(args.parallel),
                    "--explore", str(args.explore), "--out", str(trials), "--record", str(run_dir),
                    *(["--horizon", str(args.horizon)] if args.horizon else [])]
-            if trials.exists():
-                run.append("--resume")
             if not (run_dir / "done").exists():
-                _step(run, run_dir / "run.log")
+                _step(run + (["--resume"] if trials.exists() else []), run_dir / "run.log")
+                ran = True
                 (run_dir / "done").touch()
             commands.append(" ".join(["firp", *run[3:]]).replace(url, "$SERVICE"))
             records = read_records(trials)
@@ -181,12 +233,13 @@ def main(argv: list[str] | None = None) -> int:
                 break
             recorded.append(run_dir / "executions.h5")
             report = run_dir / "refresh.json"
-            refresh = [python, "-m", "firp.refresh", "--bundle", state["bundle"], "--data", str(args.data),
+            refresh = [python, "-m", "firp.refresh", "--bundle", in_use, "--data", str(args.data),
                        *[a for p in recorded for a in ("--data", str(p))], "--out", str(run_dir / "bundle"),
                        "--report", str(report), "--epochs", str(args.epochs), "--threads", str(args.threads),
                        "--seed", str(k), "--swap", url, "--no-progress"]
             if not report.exists():
                 code = _step(refresh, run_dir / "refresh.log", ok=(0, EXIT_KEPT, EXIT_REFUSED))
+                ran = True
                 if code == EXIT_REFUSED:  # e.g. held-out scenes of one class: nothing to judge on, keep
                     why = (run_dir / "refresh.log").read_text().strip().splitlines()[-1]
                     report.write_text(json.dumps({"promoted": False, "why": f"refresh refused: {why}", "paired": None}))
@@ -194,11 +247,18 @@ def main(argv: list[str] | None = None) -> int:
             outcome = json.loads(report.read_text())
             refreshes.append(outcome)
             if outcome["promoted"]:
-                state["bundle"] = str(run_dir / "bundle")
-                state_path.write_text(json.dumps(state))
+                in_use = str(run_dir / "bundle")
+                following = args.out / ("final" if k + 1 == args.rounds else f"round-{k + 1}")
+                if state["bundle"] != in_use and not (following / "done").exists():
+                    state["bundle"] = in_use  # what the service serves when a later call resumes here
+                    state_path.write_text(json.dumps(state))
+    seconds = round(time.perf_counter() - started)
+    previous = args.report.with_suffix(".json")
+    if not ran and previous.exists():  # a report written again from the files keeps the experiment's own time
+        seconds = json.loads(previous.read_text()).get("seconds", seconds)
     result = {"task": args.task, "rows": rows, "refreshes": [{k: v for k, v in f.items() if k != "split"}
                                                               for f in refreshes],
-              "commands": commands, "seconds": round(time.perf_counter() - started),
+              "commands": commands, "seconds": seconds,
               "command": "python -m experiments.learning_rounds " + " ".join(argv or sys.argv[1:])}
     args.report.parent.mkdir(parents=True, exist_ok=True)
     args.report.with_suffix(".json").write_text(json.dumps(result, indent=1))
