@@ -94,7 +94,7 @@ def pick_place_misses(final_blocks: dict, scene: dict, kind: str) -> list[str]:
 
 def _factors(task: str, attrs: dict) -> dict[str, str]:
     parts = attrs["choice"].split(":")
-    if task == "nut_assembly":
+    if task in ("nut_assembly", "nut_assembly_round"):
         from planner_client.robosuite_tamp import NUT_GRIP_NAMES, NUT_GRIPS
 
         grip = dict(zip(NUT_GRIP_NAMES, NUT_GRIPS))[parts[4]]
@@ -116,7 +116,7 @@ def _factors(task: str, attrs: dict) -> dict[str, str]:
 def _failure_mode(task: str, order: list[str], final_blocks: dict, scene: dict, kind: str) -> str:
     if task == "pick_place":
         return "; ".join(pick_place_misses(final_blocks, scene, kind)) or "all in their quadrants (the check failed)"
-    if task == "nut_assembly":
+    if task in ("nut_assembly", "nut_assembly_round"):
         return nut_failure_mode(final_blocks, scene, kind)
     return failure_mode(order, final_blocks, scene, kind)
 
@@ -169,12 +169,21 @@ def _init(mm: float, deg: float) -> None:
 
 
 def _survey_seed(args: tuple[str, int, int]) -> dict:
+    """The choices of one scene in the loop's order until one succeeds; a choice the arm cannot reach (IK
+    fails) is skipped as the loop skips it, and noted."""
+    from planner_client.ik import IKFailure
+
     task, seed, max_tries = args
     world, planner = _state["world"], _state["planner"]
     start = world.begin(task, seed, _state["mm"], _state["deg"])
     tried = []
     for choice in planner.choices(task, start.observation)[:max_tries]:
-        outcome = world.execute(start, planner.plan(task, start.observation, choice).actions, False)
+        try:
+            plan = planner.plan(task, start.observation, choice)
+        except IKFailure as exc:
+            tried.append({"choice": choice.label(), "unplannable": str(exc)})
+            continue
+        outcome = world.execute(start, plan.actions, False)
         tried.append({"choice": choice.label(), "success": outcome.success, "kind": outcome.kind,
                       "mode": None if outcome.success else _failure_mode(task, list(choice.order), outcome.final_blocks,
                                                                          start.observation["scene"], outcome.kind)})
@@ -183,29 +192,50 @@ def _survey_seed(args: tuple[str, int, int]) -> dict:
     return {"seed": seed, "tried": tried}
 
 
-def survey(task: str, seeds: int, first_seed: int, workers: int, max_tries: int, mm: float, deg: float) -> dict:
-    started = time.perf_counter()
-    jobs = [(task, first_seed + i, max_tries) for i in range(seeds)]
-    with mp.get_context("spawn").Pool(workers, initializer=_init, initargs=(mm, deg)) as pool:
-        rows = sorted(tqdm(pool.imap_unordered(_survey_seed, jobs), total=seeds, desc=f"survey {task}"),
-                      key=lambda r: r["seed"])
-    failed = [r for r in rows if not r["tried"][0]["success"]]
-    rescued_in_budget = sum(any(t["success"] for t in r["tried"][:LOOP_BUDGET]) for r in failed)
-    rescued = sum(r["tried"][-1]["success"] for r in failed)
+def survey_summary(rows: list[dict], max_tries: int) -> dict:
+    """Of the scenes whose first plannable choice (what TAMP alone executes) failed: how many another choice
+    rescued within the loop's budget (its first ``LOOP_BUDGET`` choices, unplannable ones included, as the
+    loop counts them) and within ``max_tries``."""
+    executed = [[t for t in r["tried"] if "unplannable" not in t] for r in rows]
+    planned = [(r, e) for r, e in zip(rows, executed) if e]
+    failed = [(r, e) for r, e in planned if not e[0]["success"]]
     return {
-        "seeds": [first_seed, first_seed + seeds - 1], "pose_error": {"mm": mm, "deg": deg},
-        "default_success_rate": round(1 - len(failed) / seeds, 3),
+        "scenes": len(rows), "scenes_with_no_plannable_choice": len(rows) - len(planned),
+        "default_success_rate": round(1 - len(failed) / len(planned), 3) if planned else None,
         "default_failures": len(failed),
-        f"rescued_within_{LOOP_BUDGET}_choices": rescued_in_budget,
-        f"rescued_within_{max_tries}_choices": rescued,
-        "default_failure_modes": dict(Counter(r["tried"][0]["mode"] for r in failed).most_common()),
-        "seconds": round(time.perf_counter() - started, 1), "rows": rows,
+        f"rescued_within_{LOOP_BUDGET}_choices": sum(any(t.get("success") for t in r["tried"][:LOOP_BUDGET])
+                                                     for r, _ in failed),
+        f"rescued_within_{max_tries}_choices": sum(e[-1]["success"] for _, e in failed),
+        "unplannable_choices_skipped": sum(len(r["tried"]) - len(e) for r, e in zip(rows, executed)),
+        "default_failure_modes": dict(Counter(e[0]["mode"] for _, e in failed).most_common()),
     }
+
+
+def survey(task: str, seeds: int, first_seed: int, workers: int, max_tries: int, mm: float, deg: float,
+           rows_path: Path) -> dict:
+    """Every seed's row is appended to ``rows_path`` as it ends; a rerun skips the seeds found there."""
+    from planner_client.loop import read_records
+
+    started = time.perf_counter()
+    done = {int(r["seed"]): r for r in read_records(rows_path)}
+    wanted = [first_seed + i for i in range(seeds)]
+    jobs = [(task, seed, max_tries) for seed in wanted if seed not in done]
+    rows_path.parent.mkdir(parents=True, exist_ok=True)
+    if jobs:
+        with mp.get_context("spawn").Pool(min(workers, len(jobs)), initializer=_init, initargs=(mm, deg)) as pool, \
+                rows_path.open("a") as sink:
+            for row in tqdm(pool.imap_unordered(_survey_seed, jobs), total=len(jobs), desc=f"survey {task}"):
+                sink.write(json.dumps(row) + "\n")
+                sink.flush()
+                done[row["seed"]] = row
+    rows = [done[seed] for seed in wanted]
+    return {"seeds": [wanted[0], wanted[-1]], "pose_error": {"mm": mm, "deg": deg}, **survey_summary(rows, max_tries),
+            "seconds_this_call": round(time.perf_counter() - started, 1), "rows": rows}
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--task", default=None, choices=["stack_three", "nut_assembly", "pick_place"],
+    parser.add_argument("--task", default=None, choices=["stack_three", "nut_assembly", "nut_assembly_round", "pick_place"],
                         help="the survey's task (default: the dataset's, else stack_three)")
     parser.add_argument("--data", type=Path, default=None, help="a robosuite dataset to analyse (no simulation)")
     parser.add_argument("--seeds", type=int, default=0, help="scene seeds to survey in simulation (0: none)")
@@ -215,6 +245,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pose-error-mm", type=float, default=3.0)
     parser.add_argument("--pose-error-deg", type=float, default=3.0)
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--rows", type=Path, default=None,
+                        help="the survey's rows, one per seed as it ends (a rerun resumes); default: "
+                             "runs/robosuite_survey_<task>_<seed>.jsonl")
     args = parser.parse_args(argv)
     if args.data is None and args.seeds <= 0:
         parser.error("--data or --seeds: nothing to measure")
@@ -231,8 +264,9 @@ def main(argv: list[str] | None = None) -> int:
         result["dataset"] = {"path": str(args.data), **analyse_dataset(args.data)}
         print(json.dumps({k: v for k, v in result["dataset"].items()}, indent=1))
     if args.seeds > 0:
+        rows = args.rows or Path("runs") / f"robosuite_survey_{args.task}_{args.seed}.jsonl"
         result["survey"] = survey(args.task, args.seeds, args.seed, args.workers, args.max_tries,
-                                  args.pose_error_mm, args.pose_error_deg)
+                                  args.pose_error_mm, args.pose_error_deg, rows)
         print(json.dumps({k: v for k, v in result["survey"].items() if k != "rows"}, indent=1))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")

@@ -32,7 +32,7 @@ EXIT_USAGE, EXIT_SERVICE, EXIT_INTERRUPTED = 2, 3, 130
 #: the tasks of our MuJoCo world (sim_worker.tasks.TASK_NAMES; not imported here, which would load MuJoCo)
 TASKS = ("stacking", "replacement")
 #: the robosuite world's tasks (robosuite_worker.tasks.TASKS; not imported here, which would need robosuite)
-ROBOSUITE_TASKS = ("stack_three", "nut_assembly", "pick_place")
+ROBOSUITE_TASKS = ("stack_three", "nut_assembly", "nut_assembly_round", "pick_place")
 WORLDS = ("mujoco", "robosuite")
 
 
@@ -117,7 +117,7 @@ def add_collect_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentPars
     c = sub.add_parser("collect", help="simulate labelled episodes into a robomimic-style HDF5 file (resumable)")
     c.add_argument("--world", choices=WORLDS, default="mujoco",
                    help="mujoco: our world (tasks stacking, replacement); robosuite: robosuite's tasks (stack_three, "
-                        "nut_assembly, pick_place), run in the robosuite environment (.venv-robosuite)")
+                        "nut_assembly, nut_assembly_round, pick_place), run in the robosuite environment (.venv-robosuite)")
     c.add_argument("--task", required=True, choices=TASKS + ROBOSUITE_TASKS)
     c.add_argument("--episodes", required=True, type=int_in_range("--episodes", 1, 1_000_000))
     c.add_argument("--out", required=True, type=Path, help="HDF5 file to write (parts kept beside it until done)")
@@ -126,7 +126,7 @@ def add_collect_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentPars
                    help="episode i uses scene seed seed_offset + i")
     c.add_argument("--horizon", "-T", type=int_in_range("--horizon", T_MIN, T_MAX), default=None,
                    help=f"plan length in steps at 4 FPS (our world; default {DEFAULT_T}); robosuite's tasks have "
-                        "their own T (80 stack_three, 100 nut_assembly, 200 pick_place)")
+                        "their own T (80 stack_three, 100 nut_assembly and nut_assembly_round, 200 pick_place)")
     c.add_argument("--image-size", type=int_in_range("--image-size", 16, 512), default=84)
     c.add_argument("--pose-error-mm", type=non_negative_float("--pose-error-mm"), default=3.0,
                    help="std of the planner's block position estimate error in the plane (0 = exact)")
@@ -166,8 +166,8 @@ def collect_command(args: argparse.Namespace, parser: argparse.ArgumentParser, a
 def _collect_robosuite(args: argparse.Namespace, parser: argparse.ArgumentParser, argv: list[str]) -> dict:
     """The robosuite collection, here if robosuite imports, else in the robosuite environment (exec)."""
     if args.horizon is not None:
-        parser.error("--horizon: the robosuite world's tasks have a fixed T (80 stack_three, 100 nut_assembly, "
-                     "200 pick_place)")
+        parser.error("--horizon: the robosuite world's tasks have a fixed T (80 stack_three, 100 nut_assembly "
+                     "and nut_assembly_round, 200 pick_place)")
     _continue_in_robosuite_env(args, parser, argv)
     from planner_client.collect_robosuite import RobosuiteCollectConfig, collect_robosuite
 
@@ -219,8 +219,8 @@ def _world_planner(args: argparse.Namespace, parser: argparse.ArgumentParser, ar
 
         return TampPlanner(PlannerConfig(horizon=args.horizon or DEFAULT_T))
     if args.horizon is not None:
-        parser.error("--horizon: the robosuite world's tasks have a fixed T (80 stack_three, 100 nut_assembly, "
-                     "200 pick_place)")
+        parser.error("--horizon: the robosuite world's tasks have a fixed T (80 stack_three, 100 nut_assembly "
+                     "and nut_assembly_round, 200 pick_place)")
     _continue_in_robosuite_env(args, parser, argv)
     from planner_client.robosuite_tamp import RobosuiteTampPlanner
 

@@ -33,10 +33,12 @@ from firp.core.contract import make_plan
 from planner_client.ik import ArmIK, ArmModel, IKConfig, IKFailure, rotation_yaw
 from planner_client.tamp import QUARTER, PickPlaceTiming, Segment, nearest_equivalent, pick_and_place, trajectory
 
-__all__ = ["Choice", "RobosuitePlan", "RobosuitePlannerConfig", "RobosuiteTampPlanner", "TASK_HORIZONS"]
+__all__ = ["Choice", "NUT_TASKS", "RobosuitePlan", "RobosuitePlannerConfig", "RobosuiteTampPlanner", "TASK_HORIZONS"]
 
 #: T of each task (robosuite_worker.tasks.TASKS, repeated here: the planner does not import robosuite's world)
-TASK_HORIZONS = {"stack_three": 80, "nut_assembly": 100, "pick_place": 200}
+TASK_HORIZONS = {"stack_three": 80, "nut_assembly": 100, "nut_assembly_round": 100, "pick_place": 200}
+#: the nut tasks: one nut onto its peg, the square one or the round one (the same moves; any yaw fits a round peg)
+NUT_TASKS = ("nut_assembly", "nut_assembly_round")
 
 
 @dataclass(frozen=True)
@@ -137,7 +139,7 @@ class RobosuiteTampPlanner:
             orders = list(permutations(names))
             return [Choice(order, axes, heights) for heights in product((0, 1), repeat=2)
                     for axes in product((0, 1), repeat=2) for order in orders]
-        if task == "nut_assembly":
+        if task in NUT_TASKS:
             names = tuple(observation["blocks"])
             # lowered around the peg only with the handle towards the robot: the other yaws put the hand
             # out of the arm's reach at the table (the peg stands 79 cm from the base)
@@ -175,7 +177,7 @@ class RobosuiteTampPlanner:
         start_yaw = rotation_yaw(start_rot, ik.arm.finger_axis)
         if task == "stack_three":
             alternatives = [self._stack_moves(observation, choice, start_yaw)]
-        elif task == "nut_assembly":
+        elif task in NUT_TASKS:
             # of the two hand yaws holding the handle alike, the first one the wrist can turn through
             alternatives = [self._nut_moves(observation, choice, start_yaw, flip) for flip in (0.0, np.pi, -np.pi)]
         elif task == "pick_place":

@@ -1,13 +1,14 @@
 """The robosuite tasks firp plans for: the nearest robosuite has to the paper's three MimicGen columns.
 
-=============  ======================  ===  =============================================================
-task           robosuite environment   T    success (robosuite's own ``_check_success``)
-=============  ======================  ===  =============================================================
-stack_three    ``StackThree`` (ours,    80   the three cubes stand as one tower, none held
-               in robosuite's style)
-nut_assembly   ``NutAssemblySquare``   100  the square nut sits on its peg
-pick_place     ``PickPlace``           200  each of the four objects (milk, bread, cereal, can) is in its bin
-=============  ======================  ===  =============================================================
+==================  ======================  ===  ==========================================================
+task                robosuite environment   T    success (robosuite's own ``_check_success``)
+==================  ======================  ===  ==========================================================
+stack_three         ``StackThree`` (ours,    80   the three cubes stand as one tower, none held
+                    in robosuite's style)
+nut_assembly        ``NutAssemblySquare``   100  the square nut sits on its peg
+nut_assembly_round  ``NutAssemblyRound``    100  the round nut sits on its peg (planned, surveyed; no dataset)
+pick_place          ``PickPlace``           200  each of the four objects (milk, bread, cereal, can) is in its bin
+==================  ======================  ===  ==========================================================
 
 T is the plan length at 4 FPS: the paper's for assembly (100) and pick & place (200), and 80 for
 stacking, as the paper's MimicGen stacking set. Each task says which objects the planner is told
@@ -54,23 +55,31 @@ def _stack_scene(env) -> dict:
             **_robot(env)}
 
 
+def _the_nut(env):
+    """The nut of a single-nut task (``NutAssemblySquare`` or ``NutAssemblyRound``) and its peg's body id:
+    robosuite numbers the nuts square 0, round 1, and puts each on the peg of the same order."""
+    return env.nuts[env.nut_id], (env.peg1_body_id, env.peg2_body_id)[env.nut_id]
+
+
 def _nut_objects(env) -> dict[str, int]:
-    return {"SquareNut": env.obj_body_id["SquareNut"]}
+    nut, _ = _the_nut(env)
+    return {nut.name: env.obj_body_id[nut.name]}
 
 
 def _nut_scene(env) -> dict:
     """The peg and the nut's model (what a planner knows of the object): its handle in the nut's frame, its
-    half thickness; the peg's top and its yaw about world z (its square section fits the nut's hole)."""
-    nut = env.nuts[0]
+    half thickness; the peg's top and its yaw about world z (a square peg's section fits the square nut's
+    hole; any yaw fits a round one)."""
+    nut, peg_body = _the_nut(env)
     body = env.obj_body_id[nut.name]
     position, yaw = body_pose(env, body)
     handle_world = env.sim.data.site_xpos[env.sim.model.site_name2id(nut.important_sites["handle"])] - position
     c, s = np.cos(-yaw), np.sin(-yaw)
     handle = [float(c * handle_world[0] - s * handle_world[1]), float(s * handle_world[0] + c * handle_world[1])]
-    peg = env.sim.data.body_xpos[env.peg1_body_id]
-    peg_geoms = [g for g in range(env.sim.model.ngeom) if env.sim.model.geom_bodyid[g] == env.peg1_body_id]
+    peg = env.sim.data.body_xpos[peg_body]
+    peg_geoms = [g for g in range(env.sim.model.ngeom) if env.sim.model.geom_bodyid[g] == peg_body]
     top = max(float(env.sim.data.geom_xpos[g][2] + env.sim.model.geom_size[g][2]) for g in peg_geoms)
-    _, peg_yaw = body_pose(env, env.peg1_body_id)
+    _, peg_yaw = body_pose(env, peg_body)
     thickness = [float(env.sim.model.geom_size[g][2]) for g in range(env.sim.model.ngeom)
                  if env.sim.model.geom_bodyid[g] == body]
     return {"table_height": float(env.table_offset[2]), "peg": [float(v) for v in peg], "peg_top": top,
@@ -119,9 +128,10 @@ def _stack_describe(env) -> str:
 
 
 def _nut_describe(env) -> str:
-    nut, _ = body_pose(env, env.obj_body_id["SquareNut"])
-    peg = env.sim.data.body_xpos[env.peg1_body_id]
-    return f"SquareNut {100 * np.linalg.norm(nut[:2] - peg[:2]):.1f} cm from its peg, {nut[2] - env.table_offset[2]:.3f} m up"
+    the_nut, peg_body = _the_nut(env)
+    nut, _ = body_pose(env, env.obj_body_id[the_nut.name])
+    peg = env.sim.data.body_xpos[peg_body]
+    return f"{the_nut.name} {100 * np.linalg.norm(nut[:2] - peg[:2]):.1f} cm from its peg, {nut[2] - env.table_offset[2]:.3f} m up"
 
 
 def _pick_place_describe(env) -> str:
@@ -147,6 +157,8 @@ TASKS: dict[str, TaskSpec] = {
     "stack_three": TaskSpec("stack_three", "StackThree", 80, _stack_objects, _stack_scene, _stack_describe,
                             env_kwargs=(("placement_range", 0.07),)),
     "nut_assembly": TaskSpec("nut_assembly", "NutAssemblySquare", 100, _nut_objects, _nut_scene, _nut_describe),
+    "nut_assembly_round": TaskSpec("nut_assembly_round", "NutAssemblyRound", 100, _nut_objects, _nut_scene,
+                                   _nut_describe),
     "pick_place": TaskSpec("pick_place", "PickPlace", 200, _pick_place_objects, _pick_place_scene,
                            _pick_place_describe),
 }

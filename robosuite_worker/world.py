@@ -151,10 +151,16 @@ class RobosuiteWorld:
         observation = {"blocks": _estimates(poses, seed, pose_error_mm, pose_error_deg), "scene": spec.scene(env)}
         return EpisodeStart(task, seed, observation, self.render(env), self.joint_positions(env), seed)
 
-    def execute(self, start: EpisodeStart, plan: np.ndarray, record_frames: bool) -> Outcome:
+    def execute(self, start: EpisodeStart, plan: np.ndarray, record_frames: bool,
+                shift: dict[str, tuple[float, float, float]] | None = None) -> Outcome:
+        """Execute ``plan`` from the episode's initial state; ``shift`` (object name -> dx, dy in metres, dyaw in
+        radians) first moves objects of the scene at rest -- what a scene a few millimetres away would be, for
+        measuring how much of an outcome the initial state's last millimetres decide."""
         plan = validate_plan(plan)
         spec = check_task(start.task)
         env = self._reset(start.task, start.seed)
+        if shift:
+            _shift_objects(env, spec.objects(env), shift)
         targets = plan[:, N_CATEGORIES:]  # (T, 9)
         frames = np.empty((len(plan), self.image_size, self.image_size, 3), np.uint8) if record_frames else None
         states = np.zeros((len(plan), env.sim.model.nq + env.sim.model.nv)) if record_frames else None
@@ -193,3 +199,22 @@ class RobosuiteWorld:
         for env in self._envs.values():
             env.close()
         self._envs.clear()
+
+
+def _shift_objects(env, bodies: dict[str, int], shift: dict[str, tuple[float, float, float]]) -> None:
+    """Move each named object's free joint in the plane and turn it about world z, at rest (velocities zero)."""
+    model, data = env.sim.model, env.sim.data
+    for name, (dx, dy, dyaw) in shift.items():
+        if name not in bodies:
+            raise ValueError(f"shift: {name!r} is not an object of this task; one of {sorted(bodies)}")
+        joint = int(model.body_jntadr[bodies[name]])
+        if joint < 0 or int(model.jnt_type[joint]) != 0:  # mjJNT_FREE
+            raise ValueError(f"shift: {name!r} has no free joint to move")
+        adr, vadr = int(model.jnt_qposadr[joint]), int(model.jnt_dofadr[joint])
+        data.qpos[adr] += dx
+        data.qpos[adr + 1] += dy
+        w, x, y, z = data.qpos[adr + 3:adr + 7]
+        c, s = np.cos(dyaw / 2.0), np.sin(dyaw / 2.0)  # (c, 0, 0, s) * q: a turn about world z
+        data.qpos[adr + 3:adr + 7] = [c * w - s * z, c * x - s * y, c * y + s * x, c * z + s * w]
+        data.qvel[vadr:vadr + 6] = 0.0
+    env.sim.forward()

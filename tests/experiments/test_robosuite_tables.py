@@ -67,3 +67,35 @@ def test_nut_failure_modes_say_where_the_nut_ended():
     assert nut_failure_mode(at(0.0, 0.0, 1.10), scene, "not_done") == "in the air (still held, or resting on something)"
     assert nut_failure_mode(at(0.9, 0.9, 0.2), scene, "not_done") == "off the table"
     assert nut_failure_mode(at(0.0, 0.0, 0.0), scene, "unstable") == "unstable"
+
+
+def test_the_survey_counts_what_tamp_alone_ran_and_what_the_loops_budget_rescued():
+    from experiments.robosuite_choices import survey_summary
+
+    ok = {"choice": "x", "success": True, "kind": "success", "mode": None}
+    bad = {"choice": "y", "success": False, "kind": "not_done", "mode": "top cube on the table"}
+    skipped = {"choice": "z", "unplannable": "no IK solution"}
+    rows = [{"seed": 0, "tried": [ok]},
+            {"seed": 1, "tried": [skipped, bad, ok]},  # TAMP alone runs the first plannable choice: it fails
+            {"seed": 2, "tried": [bad] * 6 + [ok]},  # rescued, but by the seventh choice: outside the loop's 6
+            {"seed": 3, "tried": [skipped] * 3}]  # nothing plannable within the tries
+    summary = survey_summary(rows, max_tries=24)
+    assert summary["scenes"] == 4 and summary["scenes_with_no_plannable_choice"] == 1
+    assert summary["default_failures"] == 2 and summary["default_success_rate"] == round(1 / 3, 3)
+    assert summary["rescued_within_6_choices"] == 1 and summary["rescued_within_24_choices"] == 2
+    assert summary["unplannable_choices_skipped"] == 4
+    assert summary["default_failure_modes"] == {"top cube on the table": 2}
+
+
+def test_sensitivity_shifts_are_seeded_per_draw_and_scaled():
+    import numpy as np
+    import pytest
+
+    from experiments.robosuite_sensitivity import shifts
+
+    a = shifts(["cubeB", "cubeA"], seed=3, k=0, xy_std_m=0.003, yaw_std_deg=3.0)
+    assert a == shifts(["cubeA", "cubeB"], seed=3, k=0, xy_std_m=0.003, yaw_std_deg=3.0)  # order of names aside
+    assert a != shifts(["cubeA", "cubeB"], seed=3, k=1, xy_std_m=0.003, yaw_std_deg=3.0)
+    draws = np.array([v for k in range(200) for v in shifts(["o"], 9, k, 0.003, 3.0).values()])
+    assert np.std(draws[:, 0]) == pytest.approx(0.003, rel=0.2)
+    assert np.degrees(np.std(draws[:, 2])) == pytest.approx(3.0, rel=0.2)

@@ -21,7 +21,7 @@ def _cli(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
 
 @pytest.mark.parametrize(("args", "message"), [
     (["collect", "--world", "robosuite", "--task", "stacking", "--episodes", "1", "--out", "x.h5"],
-     "--task: 'stacking' is not a task of the robosuite world; one of stack_three, nut_assembly, pick_place"),
+     "--task: 'stacking' is not a task of the robosuite world; one of stack_three, nut_assembly, nut_assembly_round, pick_place"),
     (["collect", "--task", "stack_three", "--episodes", "1", "--out", "x.h5"],
      "--task: 'stack_three' is not a task of the mujoco world; one of stacking, replacement"),
     (["run", "--world", "robosuite", "--horizon", "60", "--no-score"],

@@ -32,7 +32,7 @@ def _start(client, task="stack_three", seed=3, **extra) -> dict:
 
 def test_ready_names_the_world_its_tasks_and_outcome_kinds(client):
     assert client.get("/readyz").json() == {"status": "ready", "world": "robosuite_worker",
-                                            "tasks": ["stack_three", "nut_assembly", "pick_place"],
+                                            "tasks": ["stack_three", "nut_assembly", "nut_assembly_round", "pick_place"],
                                             "outcome_kinds": ["success", "not_done", "unstable"], "image_size": 48,
                                             "pending": 0}
 

@@ -41,6 +41,7 @@ def test_the_other_tasks_are_robosuites_environments():
 
     import robosuite_worker.envs  # noqa: F401
 
-    assert {TASKS["nut_assembly"].env, TASKS["pick_place"].env} <= set(robosuite.ALL_ENVIRONMENTS)
+    assert {TASKS["nut_assembly"].env, TASKS["nut_assembly_round"].env, TASKS["pick_place"].env} <= set(
+        robosuite.ALL_ENVIRONMENTS)
     assert "StackThree" in robosuite.ALL_ENVIRONMENTS and TASKS["stack_three"].env == "StackThree"
-    assert [t.horizon for t in TASKS.values()] == [80, 100, 200]
+    assert [t.horizon for t in TASKS.values()] == [80, 100, 100, 200]

@@ -93,6 +93,17 @@ def test_the_default_nut_plan_puts_the_nut_on_its_peg(world, planner):
     assert (outcome.success, outcome.kind) == (True, "success"), outcome.reason
 
 
+def test_the_round_nut_goes_onto_the_round_peg_with_the_same_moves(world, planner):
+    start = world.begin("nut_assembly_round", 4, 3.0, 3.0)
+    assert set(start.observation["blocks"]) == {"RoundNut"}
+    scene = start.observation["scene"]
+    env = world.env("nut_assembly_round")  # its own peg: robosuite's second, not the square nut's first
+    np.testing.assert_allclose(scene["peg"], env.sim.data.body_xpos[env.peg2_body_id])
+    assert np.linalg.norm(np.subtract(scene["peg"][:2], env.sim.data.body_xpos[env.peg1_body_id][:2])) > 0.05
+    outcome = world.execute(start, planner.plan("nut_assembly_round", start.observation).actions, record_frames=False)
+    assert (outcome.success, outcome.kind) == (True, "success"), outcome.reason
+
+
 def test_pick_place_choices_cover_every_order_pair_of_faces_and_height_with_the_default_first(world, planner):
     start = world.begin("pick_place", 0, 3.0, 3.0)
     choices = planner.choices("pick_place", start.observation)

@@ -72,3 +72,18 @@ def test_an_unknown_task_is_named():
 
     with pytest.raises(ValueError, match="task: unknown task 'juggling'"):
         check_task("juggling")
+
+
+def test_a_shift_moves_and_turns_the_named_object_of_the_scene_at_rest(world):
+    start = world.begin("stack_three", 5, 0.0, 0.0)
+    plan = still_plan(start.joint_positions, 8)
+    still = world.execute(start, plan, record_frames=False)
+    moved = world.execute(start, plan, record_frames=False, shift={"cubeA": (0.01, -0.005, np.radians(10.0))})
+    a0, a1 = np.asarray(still.final_blocks["cubeA"]["position"]), np.asarray(moved.final_blocks["cubeA"]["position"])
+    np.testing.assert_allclose(a1[:2] - a0[:2], [0.01, -0.005], atol=1e-3)  # resting where it was put
+    turned = np.angle(np.exp(1j * (moved.final_blocks["cubeA"]["yaw"] - still.final_blocks["cubeA"]["yaw"])))
+    assert abs(np.degrees(turned) - 10.0) < 1.0
+    np.testing.assert_allclose(moved.final_blocks["cubeB"]["position"], still.final_blocks["cubeB"]["position"],
+                               atol=1e-4)  # the others stay
+    with pytest.raises(ValueError, match="not an object of this task"):
+        world.execute(start, plan, record_frames=False, shift={"SquareNut": (0.0, 0.0, 0.0)})
