@@ -22,7 +22,13 @@ then:
 Targets: accepted p99 <= 500 ms, refused p99 <= 20 ms, ``/readyz`` p99 <= 50 ms; swap: 0 failed
 requests, the new version answering within 10 s of the load call.
 
+``--floor`` runs the same clients against ``benchmarks/refusing_server.py`` instead -- a server that refuses
+every request at once without reading it, at the service's niceness, while ``--floor-busy`` processes keep
+as many cores busy as the service's inference (one torch thread) -- so the refusals' latency at the clients
+is what the clients, the loopback and the scheduler alone cost on this machine.
+
     python benchmarks/service_overload.py --out docs/results/service_overload.json
+    python benchmarks/service_overload.py --floor --out docs/results/service_overload_floor.json
 """
 
 from __future__ import annotations
@@ -34,6 +40,7 @@ import os
 import platform
 import re
 import shutil
+import subprocess
 import sys
 import tempfile
 import threading
@@ -223,6 +230,46 @@ def swap(base: str, name: str, image: str, plan: list, clients: int, bundle: Pat
             "new_version_after_s": (min(firsts) - called) if firsts else None}
 
 
+def _busy(seconds: float) -> None:
+    """One core kept busy (pure Python: one interpreter, one core) for ``seconds``."""
+    stop_at = time.monotonic() + seconds
+    while time.monotonic() < stop_at:
+        sum(range(10_000))
+
+
+def floor(args: argparse.Namespace, image: str, plans: list) -> dict[str, Any]:
+    """The clients against a server that refuses everything at once (see the module docstring)."""
+    import multiprocessing
+
+    port = free_port()
+    base = f"http://127.0.0.1:{port}"
+    nice = (lambda: os.nice(args.service_nice)) if args.service_nice else None
+    server = subprocess.Popen([sys.executable, str(Path(__file__).with_name("refusing_server.py")), "--port", str(port)],
+                              cwd=ROOT, preexec_fn=nice)
+    busy = [multiprocessing.get_context("spawn").Process(target=_busy, args=(args.seconds + 10.0,))
+            for _ in range(args.floor_busy)]
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                if httpx.get(f"{base}/readyz", timeout=2).status_code == 200:
+                    break
+            except httpx.TransportError:
+                if time.monotonic() > deadline or server.poll() is not None:
+                    fail("benchmarks/refusing_server.py did not start")
+                time.sleep(0.2)
+        for proc in busy:
+            proc.start()
+            if args.service_nice:
+                os.setpriority(os.PRIO_PROCESS, proc.pid, args.service_nice)
+        return overload(base, image, plans, args.clients, args.seconds, args.client_processes)
+    finally:
+        for proc in busy:
+            proc.terminate()
+        server.terminate()
+        server.wait(timeout=10)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--bundle", type=Path, default=ROOT / "models" / "stacking")
@@ -239,6 +286,10 @@ def main() -> None:
     ap.add_argument("--setting", action="append", default=[], metavar="NAME=VALUE",
                     help="a service setting for the run (e.g. max_queued_plans=128); repeatable")
     ap.add_argument("--ready-timeout", type=float, default=300.0)
+    ap.add_argument("--floor", action="store_true",
+                    help="the clients against benchmarks/refusing_server.py: what they measure with no service logic")
+    ap.add_argument("--floor-busy", type=int, default=1,
+                    help="with --floor: cores kept busy beside it, as the service's inference keeps (1 torch thread)")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results" / "service_overload.json")
     args = ap.parse_args()
     manifest = json.loads((args.bundle / "manifest.json").read_text()) if (args.bundle / "manifest.json").is_file() \
@@ -247,6 +298,20 @@ def main() -> None:
     rng = np.random.default_rng(0)
     image = png_b64(rng.integers(0, 256, (84, 84, 3), dtype=np.uint8))
     plans = random_plans(args.batch, args.T, seed=2)
+    if args.floor:
+        o = floor(args, image, plans)
+        result = {"floor": o, "busy_cores": args.floor_busy, "server_nice": args.service_nice,
+                  "client_processes": args.client_processes, "T": args.T, "targets": TARGETS,
+                  "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
+                  "command": "python benchmarks/service_overload.py " + " ".join(sys.argv[1:])}
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(result, indent=2) + "\n")
+        print("\n| the clients against a server that only refuses | value | the service's target |\n|---|---|---|")
+        print(f"| refused (503 overloaded) | {o['refused']} · p50 {o['refused_p50_ms']:.1f} ms · p99 "
+              f"{o['refused_p99_ms']:.1f} ms | p99 ≤ 20 ms |")
+        print(f"| /readyz | p50 {o['readyz_p50_ms']:.1f} ms · p99 {o['readyz_p99_ms']:.1f} ms | p99 ≤ 50 ms |")
+        print(f"| other errors | {o['other_errors']} | 0 |\nwrote {args.out}")
+        return
     with tempfile.TemporaryDirectory() as tmp:
         other = Path(tmp) / args.bundle.name
         shutil.copytree(args.bundle, other)
