@@ -140,8 +140,10 @@ step "wheels (pip download into docker/wheels)"
 # The images' every dependency, resolved here as `make install` resolves them (torch: the CPU build).
 "$ROOT/.venv/bin/pip" download -q -d "$ROOT/docker/wheels" setuptools wheel "torch==2.13.0" ".[service,sim,planner,ray]" \
     >"$LOGS/pip-download.log" 2>&1 || fail "pip download (see $LOGS/pip-download.log)"
-ls "$ROOT/docker/wheels" | grep -q '^torch-2\.13\.0+cpu-' || fail "docker/wheels has no CPU build of torch 2.13.0"
-ls "$ROOT/docker/wheels" | grep -q '^nvidia' && fail "docker/wheels holds CUDA wheels (nvidia-*)"
+# globs, not `ls | grep -q`: under pipefail grep's early exit would kill ls with SIGPIPE once the listing
+# outgrows one pipe write, and a wheel that is there would read as missing
+compgen -G "$ROOT/docker/wheels/torch-2.13.0+cpu-*.whl" >/dev/null || fail "docker/wheels has no CPU build of torch 2.13.0"
+compgen -G "$ROOT/docker/wheels/nvidia*" >/dev/null && fail "docker/wheels holds CUDA wheels (nvidia-*)"
 export FIRP_PIP_NO_INDEX=1
 
 declare -A BUILD_S SIZE_MB READY_S STOP_S EXIT_CODE
