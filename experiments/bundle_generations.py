@@ -24,6 +24,7 @@ import torch
 from experiments.exploration_value import (
     Evaluation,
     _ensemble_scores,
+    difference_cell,
     _episode_attrs,
     measure,
 )
@@ -78,10 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     n_scenes = len(set(evaluation.scenes))
 
     def diff(row: dict, key: str, scale: float = 1.0, digits: int = 3) -> str:
-        if "versus_shipped" not in row:
-            return ""
-        d, (lo, hi) = row["versus_shipped"][key]
-        return f"{d * scale:+.{digits}f} [{lo * scale:+.{digits}f}, {hi * scale:+.{digits}f}]"
+        return difference_cell(row, "versus_shipped", key, scale, digits)
 
     lines = [f"Every bundle of `{args.rounds}` on every candidate of `{args.evaluation}` ({len(evaluation.labels)} "
              f"candidates, {n_scenes} scenes, none trained on).", "",

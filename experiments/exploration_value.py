@@ -50,7 +50,7 @@ from firp.refresh import load_pool, scene_split
 from firp.train import TrainConfig, predict, train_model
 from planner_client.loop import read_records
 
-__all__ = ["Candidate", "chosen_by_policy", "main", "policies", "replay"]
+__all__ = ["Candidate", "chosen_by_policy", "difference_cell", "main", "policies", "replay"]
 
 Candidate = tuple[str, tuple]  # (scene id, the candidate's description as a tuple)
 
@@ -181,12 +181,18 @@ def _ensemble_scores(models: list[torch.nn.Module], data) -> np.ndarray:
     return np.mean([predict(m, data) for m in models], axis=0)
 
 
+def difference_cell(row: dict, versus: str, key: str, scale: float = 1.0, digits: int = 3) -> str:
+    """A table cell for a row's paired difference ``row[versus][key]`` and its interval; empty on the
+    reference row, which has none."""
+    if versus not in row:
+        return ""
+    d, (lo, hi) = row[versus][key]
+    return f"{d * scale:+.{digits}f} [{lo * scale:+.{digits}f}, {hi * scale:+.{digits}f}]"
+
+
 def markdown(rows: list[dict], recording: str, evaluation: str, n_scenes: int, n_candidates: int) -> str:
     def diff(row: dict, key: str, scale: float = 1.0, digits: int = 3) -> str:
-        if "versus_deployed" not in row:
-            return ""
-        d, (lo, hi) = row["versus_deployed"][key]
-        return f"{d * scale:+.{digits}f} [{lo * scale:+.{digits}f}, {hi * scale:+.{digits}f}]"
+        return difference_cell(row, "versus_deployed", key, scale, digits)
 
     lines = [f"Refreshes trained on what `{recording}` would have recorded under each policy, judged on every "
              f"candidate of `{evaluation}` ({n_candidates} candidates, {n_scenes} scenes).", "",
