@@ -30,9 +30,10 @@ PAPER = {
     "firp": ((0.932, 0.034), (0.952, 0.023), (0.923, 0.028)),
 }
 ROWS = (("oracle", "Oracle"), ("a_mlp", "A-MLP"), ("a_mlp_image", "A-MLP + image (paper: ResNet; firp: EfficientNet-Lite0)"),
-        ("gru", "GRU"), ("dvd", "DVD"), ("firp", "FIRP"), ("firp_tcr", "FIRP + TCR"),
+        ("gru", "GRU"), ("geometry_mlp", "Geometry MLP (firp's: the plan's grasp-frame description alone)"),
+        ("dvd", "DVD"), ("firp", "FIRP"), ("firp_tcr", "FIRP + TCR"),
         ("firp_ensemble", "FIRP ensemble (firp's: FIRP, +TTC, +ATC, +TCR)"))
-BASELINES = ("a_mlp", "a_mlp_image", "gru")
+BASELINES = ("a_mlp", "a_mlp_image", "gru", "geometry_mlp")  # firp evaluate's non-oracle baselines
 PAPER_MARGIN, BASELINE_MARGIN, ORACLE_BAR = 0.03, 0.02, 0.95
 
 

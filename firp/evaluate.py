@@ -257,6 +257,9 @@ def main(argv: list[str] | None = None) -> int:
         done[(repeat, name)] = row
         print(f"repeat {repeat} {name}: test balanced accuracy {row['test_balanced_accuracy']:.3f} "
               f"(valid {row['valid_balanced_accuracy']:.3f}, {row['train_seconds']} s)", flush=True)
+    # runs another process (--only-repeats) finished while this one trained count too
+    done.update({run: json.loads(path.read_text()) for run in runs
+                 if run not in done and (path := out / f"{run_name(*run)}.json").exists()})
     rows = [done[run] for run in runs if run in done]  # in protocol order, however they finished
     rows = [r for r in rows if r["method"] != ENSEMBLE] + ensemble_rows(rows, data.labels.numpy())
     table = summary_table(rows, args.methods)

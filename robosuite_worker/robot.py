@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["GRIP_SITE", "RobotKinematics", "panda_kinematics", "robot_base"]
+__all__ = ["GRIP_SITE", "RobotKinematics", "grip_site_poses", "panda_kinematics", "robot_base"]
 
 GRIP_SITE = "gripper0_right_grip_site"
 ARM_JOINTS = tuple(f"robot0_joint{i}" for i in range(1, 8))
@@ -45,3 +45,18 @@ def panda_kinematics() -> RobotKinematics:
 def robot_base(env) -> list[float]:
     """Where the arm's base (``robot0_link0``) stands in the task's world."""
     return [float(v) for v in env.sim.data.body_xpos[env.sim.model.body_name2id("robot0_link0")]]
+
+
+def grip_site_poses(kinematics: RobotKinematics, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Arm joint angles ``(N, 7)`` -> the grip site's positions ``(N, 3)`` and rotations ``(N, 3, 3)``,
+    base frame: what a plan's joint targets put where, on robosuite's own model."""
+    import mujoco
+
+    data = mujoco.MjData(kinematics.model)
+    positions, rotations = [], []
+    for q in np.atleast_2d(joints):
+        data.qpos[kinematics.qpos] = q
+        mujoco.mj_kinematics(kinematics.model, data)
+        positions.append(data.site_xpos[kinematics.tcp_site].copy())
+        rotations.append(data.site_xmat[kinematics.tcp_site].reshape(3, 3).copy())
+    return np.array(positions), np.array(rotations)

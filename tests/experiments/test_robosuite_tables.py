@@ -30,6 +30,8 @@ def test_the_table_puts_firps_numbers_beside_the_papers_and_checks_the_targets(t
         "Oracle 0.940 vs 0.95: not met"]
     assert "vs the best non-oracle baseline (a_mlp_image, 0.850) + 0.02 = 0.870: not met" in \
         targets(2, {"firp_ensemble": [0.86], "a_mlp_image": [0.85]})[1]
+    assert "(geometry_mlp, 0.880) + 0.02 = 0.900: not met" in \
+        targets(2, {"firp_ensemble": [0.89], "a_mlp_image": [0.85], "geometry_mlp": [0.88]})[1]
     path = tmp_path / "r.json"
     path.write_text(json.dumps(results))
     assert main(["--stack-three", str(path), "--out", str(tmp_path / "t.md")]) == 0
@@ -99,3 +101,13 @@ def test_sensitivity_shifts_are_seeded_per_draw_and_scaled():
     draws = np.array([v for k in range(200) for v in shifts(["o"], 9, k, 0.003, 3.0).values()])
     assert np.std(draws[:, 0]) == pytest.approx(0.003, rel=0.2)
     assert np.degrees(np.std(draws[:, 2])) == pytest.approx(3.0, rel=0.2)
+
+
+def test_the_choice_features_mark_the_unmoved_base_and_read_every_moved_objects_grasp():
+    from experiments.choice_predictability import choice_features
+
+    tower = {"block_order": ["cubeC", "cubeA", "cubeB"], "choice": "cubeC-cubeA-cubeB:10:hc"}
+    assert choice_features(tower, ["cubeA", "cubeB", "cubeC"]) == [1.0, 2.0, 0.0, 1.0, 1.0, 0.0, 0.0, -1.0, -1.0]
+    bins = {"block_order": ["Bread", "Can", "Cereal", "Milk"], "choice": "Bread-Can-Cereal-Milk:1001:cchh"}
+    assert choice_features(bins, ["Bread", "Can", "Cereal", "Milk"]) == [
+        0.0, 1.0, 2.0, 3.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0]

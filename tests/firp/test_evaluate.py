@@ -59,6 +59,27 @@ def test_only_repeats_trains_its_share_and_summarises_all(tiny_dataset, tmp_path
     assert "--only-repeats: every index must be < --repeats (2)" in capsys.readouterr().err
 
 
+def test_the_summary_counts_repeats_another_process_finished_meanwhile(tiny_dataset, tmp_path, monkeypatch):
+    import shutil
+
+    from firp import evaluate
+
+    common = ["--data", str(tiny_dataset), "--repeats", "2", "--methods", "a_mlp", "--epochs", "1", "--threads", "1",
+              "--image-size", "32", "--cache-dir", str(tmp_path / "cache"), "--no-progress"]
+    elsewhere, out = tmp_path / "other", tmp_path / "eval"
+    assert main([*common, "--out", str(elsewhere), "--only-repeats", "1"]) == 0
+    train = evaluate.evaluate_method
+
+    def train_while_the_other_finishes(*args, **kwargs):
+        row = train(*args, **kwargs)
+        shutil.copy(elsewhere / "r1-a_mlp.json", out / "r1-a_mlp.json")  # the process of repeat 1 ends first
+        return row
+
+    monkeypatch.setattr(evaluate, "evaluate_method", train_while_the_other_finishes)
+    assert main([*common, "--out", str(out), "--only-repeats", "0"]) == 0
+    assert [r["repeat"] for r in json.loads((out / "results.json").read_text())["rows"]] == [0, 1]
+
+
 def test_missing_dataset_is_a_clear_cli_error(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--data", str(tmp_path / "nope.h5")])

@@ -45,7 +45,7 @@ def _auc(records: list[dict]) -> float:
 
 
 #: the flags each shipped bundle was made with, on top of the product preset (see firp.presets)
-SHIPPED_RECIPES = {"stacking": {}, "replacement": {"action_chunk": 4, "plan_geometry": False}}
+SHIPPED_RECIPES = {"stacking": {}, "replacement": {"action_chunk": 4, "plan_geometry": False}, "stack_three": {}}
 
 
 @pytest.mark.parametrize("task", sorted(SHIPPED_RECIPES))

@@ -1,6 +1,8 @@
 """The plan's grasp-frame description: forward kinematics, pick events, the description, its use in models."""
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -38,6 +40,25 @@ def test_forward_kinematics_matches_the_sims_panda():
         np.testing.assert_allclose(pos_t.numpy(), pos, atol=1e-9)
         np.testing.assert_allclose(rot_t.numpy(), rot, atol=1e-6)
         assert float(tcp_yaw(rot_t)) == pytest.approx(rotation_yaw(rot), abs=1e-6)
+
+
+def test_forward_kinematics_reads_robosuites_panda_up_to_a_shift_along_the_tool():
+    """robosuite's Panda (``tests/golden/robosuite_panda_grip_site.json``, checked against robosuite by
+    ``tests/robosuite_worker/test_kinematics.py``): its grip site lies 6.9 mm short of the DH tool point,
+    along the tool's axis, and its fingers close along the same line -- so the description, made of
+    relative positions and yaws, reads robosuite's plans as it reads ours."""
+    recorded = json.loads((Path(__file__).resolve().parents[2] / "golden" / "robosuite_panda_grip_site.json").read_text())
+    pos, rot = panda_tcp_pose(torch.tensor(recorded["joints"], dtype=torch.float64))
+    site_pos, site_rot = np.array(recorded["position"]), np.array(recorded["rotation"])
+    offset, tool_axis = site_pos - pos.numpy(), rot.numpy()[..., 2]
+    along = (offset * tool_axis).sum(-1)
+    np.testing.assert_allclose(along, -0.0069, atol=2e-4)
+    np.testing.assert_allclose(offset - along[:, None] * tool_axis, 0.0, atol=1e-6)
+    closing = np.abs((site_rot[..., 0] * rot.numpy()[..., 1]).sum(-1))  # robosuite: site x; DH: tool y
+    assert closing.min() > 0.9999
+    site_yaw = np.arctan2(site_rot[:, 1, 0], site_rot[:, 0, 0])
+    turn = (site_yaw - tcp_yaw(rot).numpy() + math.pi / 2) % math.pi - math.pi / 2  # the same axis, either sense
+    np.testing.assert_allclose(turn, 0.0, atol=1e-3)
 
 
 def test_forward_kinematics_batches_and_rejects_a_wrong_width():
