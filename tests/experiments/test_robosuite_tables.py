@@ -111,3 +111,17 @@ def test_the_choice_features_mark_the_unmoved_base_and_read_every_moved_objects_
     bins = {"block_order": ["Bread", "Can", "Cereal", "Milk"], "choice": "Bread-Can-Cereal-Milk:1001:cchh"}
     assert choice_features(bins, ["Bread", "Can", "Cereal", "Milk"]) == [
         0.0, 1.0, 2.0, 3.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0]
+
+
+def test_the_oracles_errors_are_grouped_by_end_state():
+    from experiments.oracle_errors import end_state, tabulate
+
+    attrs = {"block_order": ["cubeA", "cubeB", "cubeC"], "kind": "not_done", "scene": SCENE,
+             "final_blocks": {"cubeA": {"position": [0, 0, 0.82]}, "cubeB": {"position": [0.1, 0, 0.825]},
+                              "cubeC": {"position": [0, 0, 0.865]}}}
+    assert end_state(attrs, False) == "middle cube on the table" and end_state(attrs, True) == "success"
+    table = tabulate([("middle cube on the table", False, True), ("middle cube on the table", False, False),
+                      ("success", True, True)])
+    assert list(table) == ["success", "middle cube on the table"]
+    assert table["middle cube on the table"] == {"test_episodes": 2, "errors": 1, "error_rate": 0.5}
+    assert table["success"]["errors"] == 0
