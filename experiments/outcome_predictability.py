@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing as mp
 import os
 from pathlib import Path
 
@@ -45,7 +44,8 @@ from sklearn.metrics import balanced_accuracy_score
 from sklearn.model_selection import StratifiedKFold, cross_val_predict
 from sklearn.pipeline import make_pipeline
 from sklearn.preprocessing import StandardScaler
-from tqdm import tqdm
+
+from experiments.resumable import append_as_done
 
 Episode = tuple[dict, bool]  # (record attrs as planner_client.collect writes them, success)
 FEATURE_SETS = ("raw", "grasp_frame_true", "grasp_frame_plan", "plan_fk")
@@ -90,15 +90,8 @@ def simulated_episodes(task: str, episodes: int, cache: Path, workers: int) -> t
 
     done = {int(r["attrs"]["seed"]): r for r in read_records(cache)}
     pending = [s for s in range(episodes) if s not in done]
-    if pending:
-        cache.parent.mkdir(parents=True, exist_ok=True)
-        ctx = mp.get_context("spawn")  # no forked GL contexts
-        with ctx.Pool(max(1, min(workers, len(pending))), _init_worker, (task,)) as pool, cache.open("a") as sink:
-            for record in tqdm(pool.imap_unordered(_simulate_one, pending), total=len(pending),
-                               desc=f"simulate {task}", unit="ep"):
-                sink.write(json.dumps(record) + "\n")
-                sink.flush()
-                done[int(record["attrs"]["seed"])] = record
+    append_as_done(cache, _simulate_one, pending, done=done, key=lambda record: int(record["attrs"]["seed"]),
+                   workers=workers, initializer=_init_worker, initargs=(task,), desc=f"simulate {task}", unit="ep")
     return [(done[s]["attrs"], bool(done[s]["success"])) for s in range(episodes)], list(BLOCK_NAMES)
 
 

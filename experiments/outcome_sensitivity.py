@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing as mp
 import os
 import re
 from collections import Counter
@@ -34,8 +33,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
+from experiments.resumable import append_as_done
 from firp.metrics import balanced_accuracy, choose_threshold
 
 PERTURB_STREAM = 23  # separates the perturbation draws from the scene, perception and order streams
@@ -236,7 +235,6 @@ def main() -> None:
     tag = f"{args.task}{'_loop' if loop else ''}_{args.xy_mm:g}mm"
     records_path = args.records or Path(f"runs/sensitivity-{tag}.jsonl")
     out = args.out or Path(f"docs/results/outcome_sensitivity_{tag}.json")
-    records_path.parent.mkdir(parents=True, exist_ok=True)
     config = SensitivityConfig(args.task, args.perturbations, args.xy_mm / 1000.0, args.yaw_deg)
 
     seeds = list(range(seed_offset, seed_offset + args.episodes))
@@ -244,17 +242,9 @@ def main() -> None:
     units = [(s, o) for s in seeds for o in orders] if loop else [(s, episode_order(s)) for s in seeds]
     done = read_done(records_path)
     pending = [u for u in units if u not in done]
-    if pending:
-        ctx = mp.get_context("spawn")  # no forked GL contexts
-        with ctx.Pool(max(1, min(args.workers, len(pending))), _init_worker, (config,)) as pool, \
-                records_path.open("a") as sink:
-            bar = tqdm(total=len(units), initial=len(units) - len(pending), desc=f"sensitivity {tag}", unit="plan")
-            for record in pool.imap_unordered(run_episode, pending):
-                sink.write(json.dumps(record) + "\n")
-                sink.flush()
-                done[unit_of(record)] = record
-                bar.update(1)
-            bar.close()
+    append_as_done(records_path, run_episode, pending, done=done, key=unit_of, workers=args.workers,
+                   initializer=_init_worker, initargs=(config,), desc=f"sensitivity {tag}", unit="plan",
+                   already=len(units) - len(pending))
     records = [done[u] for u in units]
     if any(len(r["perturbed_success"]) != args.perturbations for r in records):
         raise SystemExit(f"{records_path} holds records with another --perturbations; use a new --records file")

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing as mp
 import os
 import platform
 import sys
@@ -27,7 +26,8 @@ from collections import Counter, defaultdict
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
+
+from experiments.resumable import append_as_done
 
 TABLE_CONTACT = 0.01  # a cube whose centre is within this of its resting height on the table is "on the table"
 LOOP_BUDGET = 6
@@ -220,14 +220,8 @@ def survey(task: str, seeds: int, first_seed: int, workers: int, max_tries: int,
     done = {int(r["seed"]): r for r in read_records(rows_path)}
     wanted = [first_seed + i for i in range(seeds)]
     jobs = [(task, seed, max_tries) for seed in wanted if seed not in done]
-    rows_path.parent.mkdir(parents=True, exist_ok=True)
-    if jobs:
-        with mp.get_context("spawn").Pool(min(workers, len(jobs)), initializer=_init, initargs=(mm, deg)) as pool, \
-                rows_path.open("a") as sink:
-            for row in tqdm(pool.imap_unordered(_survey_seed, jobs), total=len(jobs), desc=f"survey {task}"):
-                sink.write(json.dumps(row) + "\n")
-                sink.flush()
-                done[row["seed"]] = row
+    append_as_done(rows_path, _survey_seed, jobs, done=done, key=lambda row: int(row["seed"]), workers=workers,
+                   initializer=_init, initargs=(mm, deg), desc=f"survey {task}")
     rows = [done[seed] for seed in wanted]
     return {"seeds": [wanted[0], wanted[-1]], "pose_error": {"mm": mm, "deg": deg}, **survey_summary(rows, max_tries),
             "seconds_this_call": round(time.perf_counter() - started, 1), "rows": rows}

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing as mp
 import os
 import platform
 import sys
@@ -30,9 +29,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from experiments.outcome_sensitivity import analyse
+from experiments.resumable import append_as_done
 
 PERTURB_STREAM = 29  # separates the perturbation draws from the scene, perception and choice streams
 
@@ -102,16 +101,10 @@ def main(argv: list[str] | None = None) -> int:
     done = {int(r["seed"]): r for r in read_records(args.out)}
     wanted = [args.seed_offset + i for i in range(args.episodes)]
     todo = [s for s in wanted if s not in done]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    if todo:
-        init = (args.task, args.perturbations, args.xy_mm / 1000.0, args.yaw_deg, args.pose_error_mm,
-                args.pose_error_deg)
-        with mp.get_context("spawn").Pool(min(args.workers, len(todo)), initializer=_init, initargs=init) as pool, \
-                args.out.open("a") as sink:
-            for record in tqdm(pool.imap_unordered(run_episode, todo), total=len(todo), desc=f"sensitivity {args.task}"):
-                sink.write(json.dumps(record) + "\n")
-                sink.flush()
-                done[record["seed"]] = record
+    append_as_done(args.out, run_episode, todo, done=done, key=lambda record: int(record["seed"]), workers=args.workers,
+                   initializer=_init, initargs=(args.task, args.perturbations, args.xy_mm / 1000.0, args.yaw_deg,
+                                                args.pose_error_mm, args.pose_error_deg),
+                   desc=f"sensitivity {args.task}")
     records = [done[s] for s in wanted]
     planned = [r for r in records if "unplannable" not in r]
     if len({r["success"] for r in planned}) < 2:
