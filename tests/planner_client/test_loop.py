@@ -29,6 +29,8 @@ from planner_client.report import markdown, summarise, summary_paths, write_repo
 from planner_client.tamp import PlannerConfig, TampPlanner, block_orders
 from planner_client.transport import RetryPolicy
 
+from .records import assert_same_trials
+
 T = 16  # inside the tiny bundle's T range (8, 16)
 FAST = RetryPolicy(attempts=3, base_delay=0.05)
 ORDERS = [list(o) for o in block_orders()]
@@ -585,11 +587,6 @@ def test_an_uninformative_bundle_executes_tamps_first_plan_and_the_summary_says_
 
 
 # -- trials in parallel ----------------------------------------------------------------------------------
-def _comparable(record: dict) -> dict:
-    """A trial record without what differs between any two runs: its timings and its request id."""
-    return {k: v for k, v in record.items() if not k.endswith("_s") and k not in ("seconds", "request_id")}
-
-
 def test_trials_in_parallel_on_two_sim_workers_equal_a_sequential_run(tmp_path, scorer):
     planner = TampPlanner(PlannerConfig(horizon=T))
     config = dict(trials=4, max_iterations=3, threshold=0.5, seed=20)
@@ -608,7 +605,7 @@ def test_trials_in_parallel_on_two_sim_workers_equal_a_sequential_run(tmp_path, 
     assert [r["trial"] for r in resumed] == [2, 3]
     parallel = read_records(tmp_path / "par.jsonl")
     assert [r["trial"] for r in parallel] == [0, 1, 2, 3]  # the run file stays in trial order
-    assert [_comparable(r) for r in parallel] == [_comparable(r) for r in sequential]
+    assert_same_trials(parallel, sequential)
     assert len({r["request_id"] for r in parallel}) == 4
 
 

@@ -17,6 +17,8 @@ from planner_client.loop import RunConfig, RunSetupError, read_records, run_iden
 from planner_client.ray_trials import RayTrials, trials_on_ray
 from planner_client.tamp import PlannerConfig, TampPlanner
 
+from .records import assert_same_trials
+
 ray = pytest.importorskip("ray", reason="the ray extra is not installed")
 
 T = 16  # inside the tiny bundle's T range (8, 16)
@@ -46,11 +48,6 @@ def sim():
     world.close()
 
 
-def _comparable(record: dict) -> dict:
-    """A trial record without what differs between any two runs: its timings and its request id."""
-    return {k: v for k, v in record.items() if not k.endswith("_s") and k not in ("seconds", "request_id")}
-
-
 def test_trials_on_ray_equal_a_sequential_run_in_order_and_resume(tmp_path, scorer, sim):
     planner = TampPlanner(PlannerConfig(horizon=T))
     config = dict(trials=4, max_iterations=3, threshold=0.5, seed=20)
@@ -64,7 +61,7 @@ def test_trials_on_ray_equal_a_sequential_run_in_order_and_resume(tmp_path, scor
     assert [r["trial"] for r in resumed] == [2, 3]
     records = read_records(tmp_path / "ray.jsonl")
     assert [r["trial"] for r in records] == [0, 1, 2, 3]
-    assert [_comparable(r) for r in records] == [_comparable(r) for r in sequential]
+    assert_same_trials(records, sequential)
     assert all("firp_success" in r for r in records) and len({r["request_id"] for r in records}) == 4
 
 
@@ -85,7 +82,7 @@ def test_a_killed_actor_costs_a_retry_never_a_lost_or_doubled_trial(tmp_path, si
             os.kill(pid, signal.SIGKILL)
             killed.append(pid)
     assert killed and [r["trial"] for r in records] == [0, 1, 2, 3]
-    assert [_comparable(r) for r in records] == [_comparable(r) for r in sequential]
+    assert_same_trials(records, sequential)
 
 
 def test_cli_runs_trials_on_ray_with_a_launched_service_and_no_sim_worker(tmp_path, tiny_bundle):
