@@ -128,6 +128,9 @@ def add_collect_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentPars
                    help=f"plan length in steps at 4 FPS (our world; default {DEFAULT_T}); robosuite's tasks have "
                         "their own T (80 stack_three, 100 nut_assembly and nut_assembly_round, 200 pick_place)")
     c.add_argument("--image-size", type=int_in_range("--image-size", 16, 512), default=84)
+    c.add_argument("--camera", default=None,
+                   help="the robosuite world's camera of the images (default agentview; stack_three also has "
+                        "workspaceview, a close view of the cubes)")
     c.add_argument("--pose-error-mm", type=non_negative_float("--pose-error-mm"), default=3.0,
                    help="std of the planner's block position estimate error in the plane (0 = exact)")
     c.add_argument("--pose-error-deg", type=non_negative_float("--pose-error-deg"), default=3.0,
@@ -146,6 +149,9 @@ def collect_command(args: argparse.Namespace, parser: argparse.ArgumentParser, a
     world_tasks = ROBOSUITE_TASKS if args.world == "robosuite" else TASKS
     if args.task not in world_tasks:
         parser.error(f"--task: {args.task!r} is not a task of the {args.world} world; one of {', '.join(world_tasks)}")
+    if args.camera is not None and args.world != "robosuite":
+        parser.error("--camera: our world's camera is fixed per task (sim_worker.scene); --camera is the robosuite "
+                     "world's")
     if args.world == "robosuite":
         balance = _collect_robosuite(args, parser, argv)
     else:
@@ -173,7 +179,8 @@ def _collect_robosuite(args: argparse.Namespace, parser: argparse.ArgumentParser
 
     config = RobosuiteCollectConfig(task=args.task, episodes=args.episodes, out=args.out, workers=args.workers,
                                     seed_offset=args.seed_offset, image_size=args.image_size,
-                                    pose_error_mm=args.pose_error_mm, pose_error_deg=args.pose_error_deg)
+                                    camera=args.camera or "agentview", pose_error_mm=args.pose_error_mm,
+                                    pose_error_deg=args.pose_error_deg)
     return collect_robosuite(config, progress=not args.no_progress, ray=args.ray)
 
 

@@ -108,6 +108,10 @@ class RobosuiteWorld:
             # Render without mirror reflections (the table's): 32 ms a frame instead of 71 under software GL
             # (measured at 84 px), and nothing the planner or the label depends on.
             self._envs[task].sim.model.mat_reflectance[:] = 0.0
+            cameras = self._envs[task].sim.model.camera_names
+            if self.camera not in cameras:
+                raise ValueError(f"camera: {self.camera!r} is not a camera of the {task} task; one of "
+                                 f"{', '.join(cameras)}")
         return self._envs[task]
 
     def warm_up(self) -> None:

@@ -5,6 +5,11 @@ observables as ``Stack``; the success check is written like ``Stack.staged_rewar
 stage, extended to a tower of three: the middle cube is lifted off the table and touches the bottom
 one, the top cube is above the middle one and touches it, and the gripper holds none of them. Which
 cube goes where is the planner's choice (any order is a tower).
+
+Beside the arena's cameras it has ``workspaceview``: a close front view at table height of the square
+the cubes are placed in. In robosuite's ``agentview`` a 4-5 cm cube is 5-8 pixels of an 84 px image,
+and a finished tower differs from two stacked cubes with the third beside them by a few of them; from
+``workspaceview`` a cube is some 15 pixels and the tower's side is in view.
 """
 
 
@@ -16,7 +21,7 @@ from robosuite.models.tasks import ManipulationTask
 from robosuite.utils.mjcf_utils import CustomMaterial
 from robosuite.utils.observables import Observable, sensor
 from robosuite.utils.placement_samplers import UniformRandomSampler
-from robosuite.utils.transform_utils import convert_quat
+from robosuite.utils.transform_utils import convert_quat, mat2quat
 
 #: (name, half size, rgba, robosuite texture) of the three cubes
 CUBES = (("cubeA", 0.02, (1, 0, 0, 1), "WoodRed"), ("cubeB", 0.025, (0, 1, 0, 1), "WoodGreen"),
@@ -25,6 +30,21 @@ CUBES = (("cubeA", 0.02, (1, 0, 0, 1), "WoodRed"), ("cubeB", 0.025, (0, 1, 0, 1)
 LIFT_MARGIN = 0.04
 #: the top cube's centre must be at least this far above the middle one's (the smallest cube is 4 cm high)
 LEVEL_MARGIN = 0.03
+#: ``workspaceview``: where it is, the point it looks at (both in the world frame, m) and its vertical field of
+#: view (degrees) -- 49 cm from the table's centre, 25 cm above its top, so a tower's three cubes and the
+#: +-7 cm square they start in fill the middle of the image
+WORKSPACE_CAMERA = ((0.45, 0.0, 1.05), (0.0, 0.0, 0.86), 40.0)
+
+
+def look_at_quat(position, target) -> np.ndarray:
+    """The (w, x, y, z) orientation of a MuJoCo camera at ``position`` looking at ``target``, its image upright
+    (a camera looks along its -z axis with +y up)."""
+    forward = np.asarray(target, float) - np.asarray(position, float)
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, (0.0, 0.0, 1.0))
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    return convert_quat(mat2quat(np.stack([right, up, -forward], axis=1)), to="wxyz")
 
 
 class StackThree(ManipulationEnv):
@@ -73,6 +93,9 @@ class StackThree(ManipulationEnv):
         mujoco_arena = TableArena(table_full_size=self.table_full_size, table_friction=self.table_friction,
                                   table_offset=self.table_offset)
         mujoco_arena.set_origin([0, 0, 0])
+        position, target, fovy = WORKSPACE_CAMERA
+        mujoco_arena.set_camera("workspaceview", pos=list(position), quat=list(look_at_quat(position, target)),
+                                camera_attribs={"fovy": str(fovy)})
         tex_attrib = {"type": "cube"}
         mat_attrib = {"texrepeat": "1 1", "specular": "0.4", "shininess": "0.1"}
         self.cubes = []
@@ -155,4 +178,4 @@ class StackThree(ManipulationEnv):
             self._visualize_gripper_to_target(gripper=self.robots[0].gripper, target=self.cubeA)
 
 
-__all__ = ["CUBES", "StackThree"]
+__all__ = ["CUBES", "StackThree", "WORKSPACE_CAMERA", "look_at_quat"]

@@ -78,6 +78,8 @@ def test_killed_collection_resumes_and_loses_nothing(tmp_path):
     (["collect", "--task", "stacking", "--episodes", "2", "--out", "x.h5", "-T", "3"], "--horizon must be in"),
     (["collect", "--task", "stacking", "--episodes", "2", "--out", "x.h5", "--pose-error-mm", "-1"],
      "--pose-error-mm must be >= 0"),
+    (["collect", "--task", "stacking", "--episodes", "2", "--out", "x.h5", "--camera", "workspaceview"],
+     "--camera: our world's camera is fixed per task"),
 ])
 def test_cli_rejects_bad_arguments_with_the_rule(argv, message, capsys):
     with pytest.raises(SystemExit) as exit_info:

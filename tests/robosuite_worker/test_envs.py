@@ -45,3 +45,39 @@ def test_the_other_tasks_are_robosuites_environments():
         robosuite.ALL_ENVIRONMENTS)
     assert "StackThree" in robosuite.ALL_ENVIRONMENTS and TASKS["stack_three"].env == "StackThree"
     assert [t.horizon for t in TASKS.values()] == [80, 100, 100, 200]
+
+
+def test_stack_three_has_a_close_camera_looking_at_the_cubes(world):
+    """``workspaceview`` looks at the point it was aimed at, upright, and a cube fills more of it than of agentview."""
+    from robosuite_worker.envs.stack_three import WORKSPACE_CAMERA
+    from robosuite_worker.world import RobosuiteWorld
+
+    env = world.env("stack_three")
+    world._reset("stack_three", 0)
+    position, target, fovy = WORKSPACE_CAMERA
+    camera = env.sim.model.camera_name2id("workspaceview")
+    axes = np.asarray(env.sim.data.cam_xmat[camera]).reshape(3, 3)
+    looking = np.asarray(target) - np.asarray(position)
+    np.testing.assert_allclose(-axes[:, 2], looking / np.linalg.norm(looking), atol=1e-6)
+    assert axes[2, 1] > 0 and abs(axes[2, 0]) < 1e-6  # the image's up is the world's up; no roll
+    assert env.sim.model.cam_fovy[camera] == pytest.approx(fovy)
+
+    def cube_pixels(camera_name: str) -> int:
+        # the red cube alone: robosuite's red wood texture, far from the table's white and the arm's grey
+        close = RobosuiteWorld(image_size=84, camera=camera_name)
+        try:
+            image = close.render(close._reset("stack_three", 0)).astype(int)
+        finally:
+            close.close()
+        red = (image[..., 0] > 90) & (image[..., 0] > image[..., 1] + 40) & (image[..., 0] > image[..., 2] + 40)
+        return int(red.sum())
+
+    assert cube_pixels("workspaceview") > 3 * cube_pixels("agentview") > 0
+
+
+def test_a_camera_the_task_lacks_is_named_with_the_ones_it_has():
+    from robosuite_worker.world import RobosuiteWorld
+
+    world = RobosuiteWorld(camera="workspaceview")
+    with pytest.raises(ValueError, match="'workspaceview' is not a camera of the nut_assembly task; one of .*agentview"):
+        world.env("nut_assembly")
