@@ -101,17 +101,19 @@ class RobosuiteWorld:
             import robosuite_worker.envs  # noqa: F401  (registers StackThree with robosuite)
 
             logging.getLogger("robosuite").setLevel(logging.ERROR)
-            self._envs[task] = robosuite.make(
+            env = robosuite.make(
                 spec.env, robots="Panda", controller_configs=joint_position_config(), has_renderer=False,
                 has_offscreen_renderer=True, use_camera_obs=False, control_freq=CONTROL_HZ, hard_reset=False,
                 ignore_done=True, horizon=10**9, initialization_noise=None, seed=0, **dict(spec.env_kwargs))
-            # Render without mirror reflections (the table's): 32 ms a frame instead of 71 under software GL
-            # (measured at 84 px), and nothing the planner or the label depends on.
-            self._envs[task].sim.model.mat_reflectance[:] = 0.0
-            cameras = self._envs[task].sim.model.camera_names
+            cameras = env.sim.model.camera_names
             if self.camera not in cameras:
+                _close_env(env)
                 raise ValueError(f"camera: {self.camera!r} is not a camera of the {task} task; one of "
                                  f"{', '.join(cameras)}")
+            # Render without mirror reflections (the table's): 32 ms a frame instead of 71 under software GL
+            # (measured at 84 px), and nothing the planner or the label depends on.
+            env.sim.model.mat_reflectance[:] = 0.0
+            self._envs[task] = env
         return self._envs[task]
 
     def warm_up(self) -> None:
@@ -200,9 +202,26 @@ class RobosuiteWorld:
                        frames, states)
 
     def close(self) -> None:
+        """Free every environment. Close a world you are done with: one left to the garbage collector frees its
+        render contexts in whatever GL context is current then (see :func:`_close_env`)."""
         for env in self._envs.values():
-            env.close()
+            _close_env(env)
         self._envs.clear()
+
+
+def _close_env(env) -> None:
+    """Close a robosuite environment without harming the others of the process.
+
+    robosuite frees an environment's MuJoCo render context (its framebuffers, textures) in whichever GL context is
+    current -- possibly another environment's, in this world or another one, whose objects have the same names --
+    and that one then renders garbage (measured: every pixel of its next frame wrong). So the render context is
+    freed in its own GL context first; robosuite's own free afterwards finds nothing left to free.
+    """
+    context = getattr(env.sim, "_render_context_offscreen", None)
+    if context is not None:
+        context.gl_ctx.make_current()
+        context.con.free()
+    env.close()
 
 
 def _shift_objects(env, bodies: dict[str, int], shift: dict[str, tuple[float, float, float]]) -> None:

@@ -79,5 +79,9 @@ def test_a_camera_the_task_lacks_is_named_with_the_ones_it_has():
     from robosuite_worker.world import RobosuiteWorld
 
     world = RobosuiteWorld(camera="workspaceview")
-    with pytest.raises(ValueError, match="'workspaceview' is not a camera of the nut_assembly task; one of .*agentview"):
-        world.env("nut_assembly")
+    try:
+        with pytest.raises(ValueError, match="'workspaceview' is not a camera of the nut_assembly task; one of .*agentview"):
+            world.env("nut_assembly")
+        assert "nut_assembly" not in world._envs  # the refused environment is closed, not kept
+    finally:
+        world.close()

@@ -87,3 +87,18 @@ def test_a_shift_moves_and_turns_the_named_object_of_the_scene_at_rest(world):
                                atol=1e-4)  # the others stay
     with pytest.raises(ValueError, match="not an object of this task"):
         world.execute(start, plan, record_frames=False, shift={"SquareNut": (0.0, 0.0, 0.0)})
+
+
+def test_closing_one_world_leaves_another_worlds_frames_intact():
+    """robosuite frees a render context in whichever GL context is current; the world frees each in its own."""
+    from robosuite_worker.world import RobosuiteWorld
+
+    kept, closed = RobosuiteWorld(image_size=32), RobosuiteWorld(image_size=32)
+    try:
+        closed.begin("stack_three", 0, 3.0, 3.0)
+        before = kept.begin("stack_three", 7, 3.0, 3.0).image  # kept's GL context is now the current one
+        closed.close()
+        assert np.array_equal(kept.begin("stack_three", 7, 3.0, 3.0).image, before)
+    finally:
+        kept.close()
+        closed.close()
