@@ -35,9 +35,9 @@ def pick(labels: np.ndarray, per_class: int) -> tuple[list[int], list[int]]:
 
 def caption(ds: EpisodeDataset, name: str) -> str:
     """The episode's name and, where the dataset records it, how it ended."""
-    attrs = ds.demo_attrs(name)
     if ds.success(name):
         return f"{name}\nsuccess"
+    attrs = ds.demo_attrs(name)
     if {"block_order", "final_blocks", "scene", "kind"} <= attrs.keys():  # robosuite stacking
         ending = failure_mode(list(attrs["block_order"]), attrs["final_blocks"], attrs["scene"], str(attrs["kind"]))
         return f"{name}\n" + ending.replace(" and ", "\nand ")

@@ -176,12 +176,16 @@ def _collect_robosuite(args: argparse.Namespace, parser: argparse.ArgumentParser
                      "and nut_assembly_round, 200 pick_place)")
     _continue_in_robosuite_env(args, parser, argv)
     from planner_client.collect_robosuite import RobosuiteCollectConfig, collect_robosuite
+    from robosuite_worker.world import UnknownCamera
 
     config = RobosuiteCollectConfig(task=args.task, episodes=args.episodes, out=args.out, workers=args.workers,
                                     seed_offset=args.seed_offset, image_size=args.image_size,
-                                    camera=args.camera or "agentview", pose_error_mm=args.pose_error_mm,
-                                    pose_error_deg=args.pose_error_deg)
-    return collect_robosuite(config, progress=not args.no_progress, ray=args.ray)
+                                    camera=args.camera or RobosuiteCollectConfig.camera,
+                                    pose_error_mm=args.pose_error_mm, pose_error_deg=args.pose_error_deg)
+    try:
+        return collect_robosuite(config, progress=not args.no_progress, ray=args.ray)
+    except UnknownCamera as exc:
+        parser.error(f"--{exc}")
 
 
 def _postfix(records: list[dict]) -> dict[str, str]:

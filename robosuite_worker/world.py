@@ -80,6 +80,10 @@ def _estimates(poses: dict[str, tuple[np.ndarray, float]], seed: int, mm: float,
     return out
 
 
+class UnknownCamera(ValueError):
+    """The world's camera is not one of the task's (the message names the task's cameras)."""
+
+
 class RobosuiteWorld:
     """robosuite environments, one per task, made lazily (on the runner's thread, which owns their GL context)."""
 
@@ -108,7 +112,7 @@ class RobosuiteWorld:
             cameras = env.sim.model.camera_names
             if self.camera not in cameras:
                 _close_env(env)
-                raise ValueError(f"camera: {self.camera!r} is not a camera of the {task} task; one of "
+                raise UnknownCamera(f"camera: {self.camera!r} is not a camera of the {task} task; one of "
                                  f"{', '.join(cameras)}")
             # Render without mirror reflections (the table's): 32 ms a frame instead of 71 under software GL
             # (measured at 84 px), and nothing the planner or the label depends on.
@@ -125,9 +129,7 @@ class RobosuiteWorld:
     def render(self, env) -> np.ndarray:
         # One GL context per environment, and robosuite does not make an environment's current before it
         # renders: measured with three environments, the first one made rendered a stale frame.
-        context = getattr(env.sim, "_render_context_offscreen", None)
-        if context is not None:
-            context.gl_ctx.make_current()
+        _make_own_context_current(env)
         image = env.sim.render(camera_name=self.camera, height=self.image_size, width=self.image_size)
         return np.ascontiguousarray(image[::-1])  # OpenGL's rows run bottom-up
 
@@ -217,11 +219,18 @@ def _close_env(env) -> None:
     and that one then renders garbage (measured: every pixel of its next frame wrong). So the render context is
     freed in its own GL context first; robosuite's own free afterwards finds nothing left to free.
     """
+    context = _make_own_context_current(env)
+    if context is not None:
+        context.con.free()
+    env.close()
+
+
+def _make_own_context_current(env):
+    """Make the environment's own GL context the current one; returns its render context (None: none made yet)."""
     context = getattr(env.sim, "_render_context_offscreen", None)
     if context is not None:
         context.gl_ctx.make_current()
-        context.con.free()
-    env.close()
+    return context
 
 
 def _shift_objects(env, bodies: dict[str, int], shift: dict[str, tuple[float, float, float]]) -> None:

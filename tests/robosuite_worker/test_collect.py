@@ -46,12 +46,15 @@ def test_a_tiny_collection_reads_back_and_resumes(tmp_path):
 @pytest.mark.parametrize(("args", "message"), [
     (["--task", "stacking"], "--task: 'stacking' is not a task of the robosuite world"),
     (["--task", "stack_three", "--horizon", "60"], "--horizon: the robosuite world's tasks have a fixed T"),
+    (["--task", "nut_assembly", "--camera", "workspaceview"],
+     "--camera: 'workspaceview' is not a camera of the nut_assembly task; one of"),
 ])
 def test_the_cli_names_the_field_and_the_rule(tmp_path, args, message):
     out = subprocess.run([sys.executable, "-m", "planner_client", "collect", "--world", "robosuite", "--episodes", "1",
                           "--out", str(tmp_path / "x.h5"), *args], capture_output=True, text=True, cwd=ROOT,
                          timeout=120)
     assert out.returncode == 2 and message in out.stderr, out.stderr
+    assert not (tmp_path / "x.h5").exists() and not (tmp_path / "x.h5.parts").exists()
 
 
 def test_an_unreachable_choice_gives_way_to_the_next_one_drawn_from_the_seed(world):
