@@ -16,7 +16,7 @@ from firp.core.cli_types import int_in_range, non_negative_float, positive_float
 
 #: flag destination -> the field of Preset.with_overrides it sets
 RECIPE_FLAGS = ("epochs", "patience", "min_epochs", "image_size", "action_chunk", "deter_dim", "hidden",
-                "head_temperature", "plan_geometry", "overshooting", "prediction")
+                "head_temperature", "plan_geometry", "plan_description", "overshooting", "prediction")
 
 
 def add_training_flags(parser: argparse.ArgumentParser) -> None:
@@ -43,6 +43,8 @@ def add_training_flags(parser: argparse.ArgumentParser) -> None:
 
 def add_model_flags(parser: argparse.ArgumentParser) -> None:
     """The FIRP architecture flags."""
+    from firp.model.config import PLAN_DESCRIPTIONS
+
     g = parser.add_argument_group("model architecture (default: the preset's; product 8, 128, 128, 0.05, on; "
                                   "paper 1, 200, 200, 20, off)")
     g.add_argument("--action-chunk", type=int_in_range("--action-chunk", 1, 64), default=None,
@@ -55,6 +57,9 @@ def add_model_flags(parser: argparse.ArgumentParser) -> None:
                    help="attention temperature L of the success head")
     g.add_argument("--plan-geometry", action=argparse.BooleanOptionalAction, default=None,
                    help="give every plan-reading model the plan's grasp-frame description (firp.model.plan_geometry)")
+    g.add_argument("--plan-description", choices=PLAN_DESCRIPTIONS, default=None,
+                   help="what that description holds: the numbers in each grasp's frame (product), how near the "
+                        "hand comes to the nearest other block at each grasp and release, or both")
 
 
 def add_loss_flags(parser: argparse.ArgumentParser) -> None:

@@ -121,6 +121,11 @@ class HeadConfig:
         _positive("temperature", self.temperature)
 
 
+#: What a plan's description (:mod:`firp.model.plan_geometry`) holds: the numbers in each grasp's frame, the
+#: hand's clearance to the other blocks, or both.
+PLAN_DESCRIPTIONS = ("grasp_frame", "clearance", "both")
+
+
 @dataclass(frozen=True)
 class GeometryConfig:
     """The plan's grasp-frame description (:mod:`firp.model.plan_geometry`) as an extra input.
@@ -130,15 +135,25 @@ class GeometryConfig:
     forward kinematics: the MLP baselines concatenate it to their input, FIRP and the GRU baseline
     feed it through a two-layer MLP (``hidden`` wide) into the success head beside the pooled
     sequence. ``max_picks`` pick-and-place pairs are described (3: the tasks' three blocks).
+    ``description`` says what it holds: ``grasp_frame`` (the numbers in each grasp's frame, what the
+    shipped bundles read), ``clearance`` (how near the hand's fingertip pads, fingers and body come to
+    the nearest other block at each grasp and release, assuming square blocks of half-size
+    ``object_half``: 6 numbers per pick) or ``both``.
     """
 
     enabled: bool = False
     max_picks: int = 3
     hidden: int = 64
+    description: str = "grasp_frame"
+    object_half: float = 0.02
 
     def __post_init__(self) -> None:
         _positive("max_picks", self.max_picks)
         _positive("hidden", self.hidden)
+        if self.description not in PLAN_DESCRIPTIONS:
+            raise ValueError(f"--plan-description: {self.description!r} is none of {', '.join(PLAN_DESCRIPTIONS)}")
+        if not self.object_half > 0:
+            raise ValueError(f"object_half must be > 0 (a block's half-size in metres), got {self.object_half}")
 
 
 @dataclass(frozen=True)

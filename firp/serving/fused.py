@@ -122,6 +122,9 @@ class FusedFIRP:
             raise TypeError("only FIRP members are fused")
         if len({m.geometry is None for m in models}) != 1:
             raise TypeError("fused members must all read the plan's grasp-frame description, or none")
+        described = [m.geometry for m in models if m.geometry is not None]
+        if len({(g.max_picks, g.description, g.object_half) for g in described}) > 1:
+            raise TypeError("fused members must describe the plan alike (max_picks, description, object_half)")
         rssm_cfg = m0.rssm.cfg
         self.members = list(models)
         self.chunk = m0.cfg.action_chunk
@@ -169,6 +172,8 @@ class FusedFIRP:
             self.b_out = _stack_b([m.head.out.bias for m in models])
             # the head's context: the plan's grasp-frame description, standardised per member, through an MLP
             self.max_picks = m0.geometry.max_picks if m0.geometry is not None else None
+            self.description = m0.geometry.description if m0.geometry is not None else "grasp_frame"
+            self.object_half = float(m0.geometry.object_half) if m0.geometry is not None else 0.0
             if self.max_picks is not None:
                 self.g_mean = torch.stack([m.geometry.mean for m in models])[:, None, :]  # (M, 1, G)
                 self.g_std = torch.stack([m.geometry.std for m in models])[:, None, :]
@@ -228,7 +233,8 @@ class FusedFIRP:
         w = torch.softmax(cos / self.temperature, dim=-1).mean(dim=2)  # (M, N, Tc)
         pooled = torch.einsum("mnt,mntq->mnq", w, q)
         if self.max_picks is not None:  # the description is computed once for every member
-            z = standardise(plan_geometry(actions, None, self.max_picks).unsqueeze(0), self.g_mean, self.g_std)  # (M, N, G)
+            z = plan_geometry(actions, None, self.max_picks, self.description, self.object_half)  # (N, G)
+            z = standardise(z.unsqueeze(0), self.g_mean, self.g_std)  # (M, N, G)
             c = torch.baddbmm(self.b_c2, torch.relu(torch.baddbmm(self.b_c1, z, self.w_c1)), self.w_c2)
             pooled = torch.cat([pooled, torch.relu(c)], dim=-1)  # (M, N, Q + Hc)
         logits = torch.baddbmm(self.b_out, pooled, self.w_out).squeeze(-1)  # (M, N)

@@ -216,3 +216,123 @@ def test_columns_constant_in_training_stay_unscaled_and_unseen_plans_stay_bounde
     z = enc(_actions(planned["replacement"]).float())
     assert torch.all(z[:, 2 * per_pick] == 1.0)  # the third pick's presence flag: 1 - 0, unscaled
     assert z.abs().max() <= STANDARD_CLIP
+
+
+# -- the hand's clearance ---------------------------------------------------------------------------------
+
+
+def _clearance_of(x: float, y: float = 0.0, yaw: float = 0.0, opening: float = 0.04, half: float = 0.02):
+    from firp.model.plan_geometry import hand_clearance
+
+    block = torch.tensor([[[x, y]]], dtype=torch.float64)
+    return hand_clearance(block, torch.tensor([[yaw]], dtype=torch.float64), torch.tensor([opening], dtype=torch.float64),
+                          half)[0, 0].tolist()  # pad, finger, hand
+
+
+def test_hand_clearance_by_hand():
+    """Fingers open 4 cm: a pad covers x in [0.04, 0.0544], a finger [0.04, 0.0665], the hand's slab reaches 0.104."""
+    from firp.model.plan_geometry import CLEARANCE_FAR, FINGER_BODY, FINGER_PAD, HAND_SLAB_HALF
+
+    pad, finger, hand = _clearance_of(0.1)  # a 4 cm block whose near face is at 8 cm
+    assert pad == pytest.approx(0.08 - (0.04 + FINGER_PAD[0]), abs=1e-9)
+    assert finger == pytest.approx(0.08 - (0.04 + FINGER_BODY[0]), abs=1e-9)
+    assert hand == pytest.approx(0.08 - HAND_SLAB_HALF[0], abs=1e-9)  # under the hand by 2.4 cm: negative
+    assert _clearance_of(-0.1) == pytest.approx([pad, finger, hand], abs=1e-9)  # the other finger alike
+    # turned by 45 degrees, its corner comes 2 * (sqrt(2) - 1) cm nearer
+    corner = _clearance_of(0.1, yaw=math.pi / 4)
+    assert corner[0] == pytest.approx(pad - 0.02 * (math.sqrt(2) - 1), abs=1e-9)
+    assert _clearance_of(0.1, yaw=math.pi / 2) == pytest.approx([pad, finger, hand], abs=1e-9)  # a quarter turn: same
+    # overlapping the pad, negative by the depth of the overlap: block x in [0.04, 0.08], pad x in [0.04, 0.0544]
+    assert _clearance_of(0.06)[0] == pytest.approx(-FINGER_PAD[0], abs=1e-9)
+    # beside the finger, across the closing axis: the gap in y
+    assert _clearance_of(0.047, y=0.05)[1] == pytest.approx(0.05 - 0.02 - FINGER_BODY[1], abs=1e-9)
+    # a wider opening clears more; far blocks are clipped
+    assert _clearance_of(0.1, opening=0.03)[0] == pytest.approx(pad + 0.01, abs=1e-9)
+    assert _clearance_of(1.0) == [CLEARANCE_FAR] * 3
+
+
+def _inside(point: np.ndarray, polygon: np.ndarray) -> bool:
+    """A point inside a convex counter-clockwise polygon (4, 2): left of every edge."""
+    edges = np.roll(polygon, -1, axis=0) - polygon
+    to_point = point - polygon
+    return bool(np.all(edges[:, 0] * to_point[:, 1] - edges[:, 1] * to_point[:, 0] >= 0))
+
+
+def test_signed_distance_agrees_with_dense_sampling():
+    """Random turned rectangles: apart, the distance is the nearest pair of boundary points; overlapping,
+    it is negative."""
+    from firp.model.plan_geometry import _corners, _signed_distance
+
+    rng = np.random.default_rng(0)
+    n = 200
+    centre = torch.tensor(rng.uniform(-0.05, 0.05, (n, 2, 2)))
+    half = torch.tensor(rng.uniform(0.005, 0.03, (n, 2, 2)))
+    yaw = torch.tensor(rng.uniform(-math.pi, math.pi, (n, 2)))
+    rect = _corners(centre, half, yaw)  # (n, 2, 4, 2)
+    d = _signed_distance(rect[:, 0], rect[:, 1]).numpy()
+    s = np.linspace(0.0, 1.0, 400)[:, None]
+    for i in range(n):
+        pts = []
+        for r in range(2):
+            c = rect[i, r].numpy()
+            pts.append(np.concatenate([c[j] + s * (c[(j + 1) % 4] - c[j]) for j in range(4)]))
+        dense = np.sqrt(((pts[0][:, None, :] - pts[1][None, :, :]) ** 2).sum(-1)).min()
+        if d[i] > 0:
+            assert d[i] == pytest.approx(dense, abs=2e-4), i
+        else:  # touching or overlapping: the boundaries meet, or one holds the other
+            a, b = rect[i, 0].numpy(), rect[i, 1].numpy()
+            assert dense < 2e-4 or _inside(a.mean(0), b) or _inside(b.mean(0), a), i
+    assert (d < 0).sum() > 20 and (d > 0).sum() > 20  # both cases were drawn
+
+
+def test_clearance_columns_read_the_plan(planned):
+    from firp.model.plan_geometry import CLEARANCE_FAR, clearance_dim, hand_clearance
+
+    a = _actions(planned["stacking"])
+    plain = plan_geometry(a)
+    both, only = plan_geometry(a, description="both"), plan_geometry(a, description="clearance")
+    assert both.shape == (3, geometry_dim(description="both")) == (3, geometry_dim() + clearance_dim())
+    assert only.shape == (3, geometry_dim(description="clearance")) == (3, 6 * 3)
+    assert torch.equal(both[:, :geometry_dim()], plain) and torch.equal(both[:, geometry_dim():], only)
+    assert torch.all(only <= CLEARANCE_FAR) and torch.isfinite(only).all()
+    # pick 0's grasp, by hand: the nearer of the tower (the block under the first release point) and the
+    # block picked second, still on the table
+    ev = pick_events(a)
+    c, s = torch.cos(ev["grasp_yaw"][:, 0]), torch.sin(ev["grasp_yaw"][:, 0])
+
+    def in_grasp_frame(p):  # world xy (B, 2) -> pick 0's grasp frame, x along the closing axis
+        d = p[:, :2] - ev["grasp_pos"][:, 0, :2]
+        return torch.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], dim=-1)
+
+    spots = torch.stack([in_grasp_frame(ev["release_pos"][:, 0]), in_grasp_frame(ev["grasp_pos"][:, 1])], dim=1)
+    turns = torch.stack([ev["release_yaw"][:, 0], ev["grasp_yaw"][:, 1]], dim=1) - ev["grasp_yaw"][:, :1]
+    nearest = hand_clearance(spots, turns, ev["grasp_open"][:, 0], 0.02).min(dim=1).values  # (B, 3)
+    torch.testing.assert_close(only[:, :3], nearest)
+    assert torch.all(ev["grasp_open"][:, :2] > 0.03)  # the fingers stand open before each grasp
+    # pick 1 (the last of stacking) releases with no block left on the table: far; the absent pick 2: zeros
+    assert torch.all(only[:, 9:12] == CLEARANCE_FAR) and torch.all(only[:, 12:] == 0)
+
+
+def test_plan_description_config_flags_and_models():
+    import argparse
+
+    from firp.flags import add_model_flags, add_training_flags, recipe_flags, recipe_from
+
+    with pytest.raises(ValueError, match="--plan-description: 'nearest' is none of"):
+        GeometryConfig(enabled=True, description="nearest")
+    with pytest.raises(ValueError, match="object_half"):
+        GeometryConfig(enabled=True, object_half=0.0)
+    parser = argparse.ArgumentParser()
+    add_training_flags(parser)
+    add_model_flags(parser)
+    config, overrides = recipe_from(parser.parse_args(["--data", "x", "--plan-description", "clearance"]))
+    assert config.model.geometry.enabled and config.model.geometry.description == "clearance"
+    assert recipe_flags("product", overrides) == "--preset product --plan-description clearance"
+    with pytest.raises(ValueError, match="drop one of the two"):
+        recipe_from(parser.parse_args(["--data", "x", "--plan-description", "both", "--no-plan-geometry"]))
+    cfg = FIRPConfig(encoder=EncoderConfig(feature_dim=8, projection_hidden=0),
+                     rssm=RSSMConfig(deter_dim=8, stoch_dim=4, hidden=8),
+                     geometry=GeometryConfig(enabled=True, description="clearance"), action_chunk=8)
+    assert FIRPConfig.from_dict(cfg.to_dict()) == cfg
+    for kind in ("firp", "a_mlp"):
+        assert build_model(kind, cfg).geometry.dim == geometry_dim(description="clearance")

@@ -59,6 +59,23 @@ def test_fused_equals_the_loop(tmp_path, chunk, n, t, base):
     np.testing.assert_array_equal(a.success, b.success)
 
 
+def test_fused_members_reading_the_hands_clearance_equal_the_loop(tmp_path):
+    """Members whose description is the hand's clearance (--plan-description clearance) fuse like the others."""
+    base = dataclasses.replace(SHIPPED_LIKE, geometry=dataclasses.replace(SHIPPED_LIKE.geometry, description="clearance"))
+    bundle = _firp_bundle(tmp_path, 4, base=base, fit_plans=valid_plans(8, 16, seed=99))
+    fused, loop = EnsembleScorer(bundle, strategy="fused"), EnsembleScorer(bundle, strategy="loop")
+    assert fused.uses_fused
+    image, plans = random_image(seed=3), valid_plans(3, 16, seed=5)
+    a, b = fused.score(image, plans), loop.score(image, plans)
+    np.testing.assert_allclose(a.member_probabilities, b.member_probabilities, atol=1e-5, rtol=0)
+    from firp.serving.fused import FusedFIRP
+
+    other = dataclasses.replace(SHIPPED_LIKE, action_chunk=4)
+    models = [*bundle.models, build_model("firp", other).eval()]
+    with pytest.raises(TypeError, match="describe the plan alike"):
+        FusedFIRP(models)
+
+
 def test_fused_plans_shorter_than_one_chunk(tmp_path):
     """T <= k: one transition, no prior steps; the head reads e_1 alone (weights all on step 0)."""
     cfg = dataclasses.replace(TINY, action_chunk=8)
