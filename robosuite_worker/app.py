@@ -16,5 +16,6 @@ __all__ = ["create_app"]
 
 def create_app(settings: RobosuiteSettings | None = None, clock: Callable[[], float] = time.time) -> FastAPI:
     settings = settings or RobosuiteSettings()
-    return create_world_app(RobosuiteWorld(settings.image_size, settings.camera), settings, clock,
+    world = RobosuiteWorld(settings.image_size, settings.camera, tasks=settings.tasks or None)
+    return create_world_app(world, settings, clock,
                             title="firp robosuite worker")

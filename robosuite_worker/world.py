@@ -91,9 +91,11 @@ class RobosuiteWorld:
     tasks = tuple(TASKS)
     outcome_kinds = OUTCOME_KINDS
 
-    def __init__(self, image_size: int = 84, camera: str = "agentview", settle_seconds: float = SETTLE_SECONDS):
+    def __init__(self, image_size: int = 84, camera: str = "agentview", settle_seconds: float = SETTLE_SECONDS,
+                 tasks: tuple[str, ...] | None = None):
         self.image_size = image_size
         self.camera = camera
+        self.tasks = tuple(check_task(task).name for task in tasks) if tasks else tuple(TASKS)  # the ones served
         self.settle_steps = int(round(settle_seconds * CONTROL_HZ))
         self._envs: dict[str, object] = {}
 

@@ -85,3 +85,28 @@ def test_bad_plans_and_unknown_episodes(client):
     assert client.post("/v1/episodes/nope/execute", json={"plan": plan.tolist()}).json()["error"]["rule"] == \
         "unknown_episode"
     assert client.delete("/v1/episodes/nope").status_code == 404
+
+
+def test_a_worker_can_serve_some_tasks_through_a_camera_only_they_have(monkeypatch):
+    """FIRP_ROBOSUITE_TASKS=stack_three with FIRP_ROBOSUITE_CAMERA=workspaceview: the other tasks lack that
+    camera, so a worker serving them all would never be ready; one serving stack_three alone is, and refuses
+    the others by name."""
+    from pydantic import ValidationError
+
+    monkeypatch.setenv("FIRP_ROBOSUITE_TASKS", " stack_three ,")
+    monkeypatch.setenv("FIRP_ROBOSUITE_CAMERA", "workspaceview")
+    settings = RobosuiteSettings(image_size=32)
+    assert settings.tasks == ("stack_three",) and settings.camera == "workspaceview"
+    with TestClient(create_app(settings)) as c:
+        deadline = time.monotonic() + 120
+        while c.get("/readyz").status_code != 200:
+            assert time.monotonic() < deadline, c.get("/readyz").json()
+            time.sleep(0.2)
+        assert c.get("/readyz").json()["tasks"] == ["stack_three"]
+        episode = _start(c)
+        assert decode_png_b64(episode["image"]).shape == (32, 32, 3)
+        r = c.post("/v1/episodes", json={"task": "nut_assembly", "seed": 0})
+        assert r.status_code == 422 and r.json()["error"]["field"] == "task"
+    monkeypatch.setenv("FIRP_ROBOSUITE_TASKS", "stack_three,stacking")
+    with pytest.raises(ValidationError, match="unknown task\\(s\\) 'stacking'; expected some of stack_three"):
+        RobosuiteSettings()
