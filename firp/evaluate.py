@@ -233,10 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     add_loss_flags(parser)
     args = parser.parse_args(argv)
     check_data_flag(parser, args)
-    try:
-        base, overrides = recipe_from(args)
-    except ValueError as error:  # flags that contradict each other (--plan-description without the description)
-        parser.error(str(error))
+    base, overrides = recipe_from(args, parser)
     if not base.model.geometry.enabled and any(m in NEEDS_GEOMETRY for m in args.methods):
         parser.error(f"--methods: {', '.join(m for m in args.methods if m in NEEDS_GEOMETRY)} reads the plan's "
                      "grasp-frame description, which this recipe leaves out: drop --no-plan-geometry")

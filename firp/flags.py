@@ -71,13 +71,20 @@ def add_loss_flags(parser: argparse.ArgumentParser) -> None:
                    default=None, help="weight of FIRP's one-step prediction terms L_KL^1 + L_re^1 (paper: 1)")
 
 
-def recipe_from(args: argparse.Namespace) -> tuple[Any, dict[str, Any]]:
+def recipe_from(args: argparse.Namespace, parser: argparse.ArgumentParser | None = None) -> tuple[Any, dict[str, Any]]:
     """``(TrainConfig, overrides)``: the preset with every recipe flag that was given; ``overrides`` maps
-    each of those flags to its value (what a run adds to the preset's name)."""
+    each of those flags to its value (what a run adds to the preset's name). Flags that contradict each
+    other (``--plan-description`` with ``--no-plan-geometry``) are a ValueError, or with ``parser`` its CLI
+    error."""
     from firp.presets import preset
 
     overrides = {k: getattr(args, k) for k in RECIPE_FLAGS if getattr(args, k, None) is not None}
-    config = preset(args.preset).with_overrides(**overrides)
+    try:
+        config = preset(args.preset).with_overrides(**overrides)
+    except ValueError as error:
+        if parser is None:
+            raise
+        parser.error(str(error))
     from dataclasses import replace
 
     return replace(config, threads=args.threads), overrides

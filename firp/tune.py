@@ -310,10 +310,7 @@ def main(argv: list[str] | None = None) -> int:
     add_model_flags(parser)
     args = parser.parse_args(argv)
     check_data_flag(parser, args)
-    try:
-        base, overrides = recipe_from(args)
-    except ValueError as error:  # flags that contradict each other (--plan-description without the description)
-        parser.error(str(error))
+    base, overrides = recipe_from(args, parser)
     space = args.space or preset(args.preset).space
     runs = Path("runs")
     runs.mkdir(exist_ok=True)

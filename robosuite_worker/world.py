@@ -88,7 +88,6 @@ class RobosuiteWorld:
     """robosuite environments, one per task, made lazily (on the runner's thread, which owns their GL context)."""
 
     name = "robosuite_worker"
-    tasks = tuple(TASKS)
     outcome_kinds = OUTCOME_KINDS
 
     def __init__(self, image_size: int = 84, camera: str = "agentview", settle_seconds: float = SETTLE_SECONDS,

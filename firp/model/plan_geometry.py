@@ -63,7 +63,6 @@ from firp.model.ops import plan_categories
 __all__ = [
     "CLEARANCE_FAR",
     "DEFAULT_MAX_PICKS",
-    "DESCRIPTIONS",
     "HAND_PARTS",
     "PANDA_DH",
     "PlanGeometry",
@@ -103,7 +102,6 @@ HAND_SLAB_HALF = (0.104, 0.019)
 HAND_PARTS = ("pad", "finger", "hand")
 #: Clearances are clipped to this many metres: an absent block, or one farther away, reads as far.
 CLEARANCE_FAR = 0.1
-DESCRIPTIONS = PLAN_DESCRIPTIONS  # the grasp-frame numbers, the hand's clearance, or both
 #: Half-size of the square the clearance assumes at a neighbour (the tasks' cubes: 0.02-0.025 m).
 DEFAULT_OBJECT_HALF = 0.02
 #: Bound on a standardised value. Training plans stay within +/-5 (the shipped stacking bundle: 4.3
@@ -309,8 +307,8 @@ def geometry_dim(max_picks: int = DEFAULT_MAX_PICKS, description: str = "grasp_f
 
 
 def _check_description(description: str) -> None:
-    if description not in DESCRIPTIONS:
-        raise ValueError(f"description: {description!r} is none of {', '.join(DESCRIPTIONS)}")
+    if description not in PLAN_DESCRIPTIONS:
+        raise ValueError(f"description: {description!r} is none of {', '.join(PLAN_DESCRIPTIONS)}")
 
 
 def _pick_clearances(ev: dict[str, Tensor], k: int, object_half: float) -> Tensor:
@@ -337,15 +335,11 @@ def _pick_clearances(ev: dict[str, Tensor], k: int, object_half: float) -> Tenso
     return torch.cat([at_grasp.min(dim=1).values, at_release.min(dim=1).values], dim=-1)
 
 
-def plan_geometry(actions: Tensor, mask: Tensor | None = None, max_picks: int = DEFAULT_MAX_PICKS,
-                  description: str = "grasp_frame", object_half: float = DEFAULT_OBJECT_HALF) -> Tensor:
-    """Raw plan ``(B, T, 16)`` -> its description ``(B, geometry_dim(max_picks, description))``: the grasp-frame
-    numbers, the hand's clearance, or both (see the module docstring)."""
-    _check_description(description)
-    ev = pick_events(actions, mask, max_picks)
-    P = max_picks
-    present = ev["present"].to(actions.dtype)  # (B, P)
-    order = torch.arange(P, device=actions.device)
+def _grasp_frame_rows(ev: dict[str, Tensor], dtype: torch.dtype) -> list[Tensor]:
+    """Per pick, the grasp-frame numbers (B, per-pick width) of :func:`pick_events`' events (the module docstring)."""
+    present = ev["present"].to(dtype)  # (B, P)
+    B, P = present.shape
+    order = torch.arange(P, device=present.device)
     rows: list[Tensor] = []
     first_release = ev["release_pos"][:, 0]  # (B, 3)
     for k in range(P):
@@ -356,10 +350,10 @@ def plan_geometry(actions: Tensor, mask: Tensor | None = None, max_picks: int = 
         others = order[order != k]
         grasp_rel = _in_frame(gpos, gyaw, ev["grasp_pos"][:, others])  # (B, P-1, 2)
         grasp_dyaw = ev["grasp_yaw"][:, others] - gyaw.unsqueeze(-1)
-        still_there = (others > k).to(actions.dtype).expand(actions.shape[0], -1) * present[:, others]
+        still_there = (others > k).to(dtype).expand(B, -1) * present[:, others]
         release_rel = _in_frame(gpos, gyaw, ev["release_pos"])  # (B, P, 2)
         release_dyaw = ev["release_yaw"] - gyaw.unsqueeze(-1)
-        occupied = (order < k).to(actions.dtype).expand(actions.shape[0], -1) * present
+        occupied = (order < k).to(dtype).expand(B, -1) * present
         tower = _in_frame(rpos, ryaw, first_release.unsqueeze(1))[:, 0]  # (B, 2)
         parts = [
             keep, gpos, rpos, rise,
@@ -368,10 +362,19 @@ def plan_geometry(actions: Tensor, mask: Tensor | None = None, max_picks: int = 
             tower,
         ]
         rows.append(torch.cat(parts, dim=-1) * keep)
-    if description == "clearance":
-        rows = []
+    return rows
+
+
+def plan_geometry(actions: Tensor, mask: Tensor | None = None, max_picks: int = DEFAULT_MAX_PICKS,
+                  description: str = "grasp_frame", object_half: float = DEFAULT_OBJECT_HALF) -> Tensor:
+    """Raw plan ``(B, T, 16)`` -> its description ``(B, geometry_dim(max_picks, description))``: the grasp-frame
+    numbers, the hand's clearance, or both (see the module docstring)."""
+    _check_description(description)
+    ev = pick_events(actions, mask, max_picks)
+    rows = _grasp_frame_rows(ev, actions.dtype) if description != "clearance" else []
     if description != "grasp_frame":
-        rows += [_pick_clearances(ev, k, object_half) * present[:, k : k + 1] for k in range(P)]
+        present = ev["present"].to(actions.dtype)
+        rows += [_pick_clearances(ev, k, object_half) * present[:, k : k + 1] for k in range(max_picks)]
     return torch.cat(rows, dim=-1)  # (B, G)
 
 
@@ -399,11 +402,14 @@ class PlanGeometry(nn.Module):
         self.register_buffer("mean", torch.zeros(self.dim))
         self.register_buffer("std", torch.ones(self.dim))
 
+    def describe(self, actions: Tensor, mask: Tensor | None = None) -> Tensor:
+        """Raw plans ``(B, T, A)`` -> this module's description of them, not standardised ``(B, G)``."""
+        return plan_geometry(actions, mask, self.max_picks, self.description, self.object_half)
+
     @torch.no_grad()
     def fit(self, actions: Tensor, mask: Tensor | None = None, batch_size: int = 1024) -> None:
         """Per-column statistics of the description over the plans ``actions`` (N, T, A)."""
-        parts = [plan_geometry(actions[i:i + batch_size].double(), None if mask is None else mask[i:i + batch_size],
-                               self.max_picks, self.description, self.object_half)
+        parts = [self.describe(actions[i:i + batch_size].double(), None if mask is None else mask[i:i + batch_size])
                  for i in range(0, actions.shape[0], batch_size)]
         g = torch.cat(parts)  # (N, G)
         self.mean.copy_(g.mean(dim=0).to(self.mean.dtype))
@@ -413,8 +419,7 @@ class PlanGeometry(nn.Module):
 
     def forward(self, actions: Tensor, mask: Tensor | None = None) -> Tensor:
         """Raw plans ``(B, T, A)`` -> standardised description ``(B, G)``."""
-        return standardise(plan_geometry(actions, mask, self.max_picks, self.description, self.object_half),
-                           self.mean, self.std)
+        return standardise(self.describe(actions, mask), self.mean, self.std)
 
 
 def build_plan_geometry(cfg: GeometryConfig) -> PlanGeometry | None:

@@ -30,7 +30,7 @@ from torch import Tensor, nn
 
 from firp.model.firp import FIRP, chunk_actions, spread_chunk_weights
 from firp.model.ops import safe_unit
-from firp.model.plan_geometry import plan_geometry, standardise
+from firp.model.plan_geometry import standardise
 
 __all__ = ["SCENES", "FusedFIRP"]
 
@@ -171,10 +171,9 @@ class FusedFIRP:
             self.w_out = _stack_t([m.head.out.weight for m in models])  # (M, Q [+ Hc], 1)
             self.b_out = _stack_b([m.head.out.bias for m in models])
             # the head's context: the plan's grasp-frame description, standardised per member, through an MLP
-            self.max_picks = m0.geometry.max_picks if m0.geometry is not None else None
-            self.description = m0.geometry.description if m0.geometry is not None else "grasp_frame"
-            self.object_half = float(m0.geometry.object_half) if m0.geometry is not None else 0.0
-            if self.max_picks is not None:
+            # the members describe plans alike (checked above): one of them computes it for all
+            self.describe = m0.geometry.describe if m0.geometry is not None else None
+            if self.describe is not None:
                 self.g_mean = torch.stack([m.geometry.mean for m in models])[:, None, :]  # (M, 1, G)
                 self.g_std = torch.stack([m.geometry.std for m in models])[:, None, :]
                 c1 = [_linear_parts(m.head.context)[0] for m in models]
@@ -232,9 +231,8 @@ class FusedFIRP:
         cos = torch.einsum("mpq,mntq->mnpt", self.prototypes, safe_unit(q))  # (M, N, P, Tc)
         w = torch.softmax(cos / self.temperature, dim=-1).mean(dim=2)  # (M, N, Tc)
         pooled = torch.einsum("mnt,mntq->mnq", w, q)
-        if self.max_picks is not None:  # the description is computed once for every member
-            z = plan_geometry(actions, None, self.max_picks, self.description, self.object_half)  # (N, G)
-            z = standardise(z.unsqueeze(0), self.g_mean, self.g_std)  # (M, N, G)
+        if self.describe is not None:  # the description is computed once for every member
+            z = standardise(self.describe(actions).unsqueeze(0), self.g_mean, self.g_std)  # (M, N, G)
             c = torch.baddbmm(self.b_c2, torch.relu(torch.baddbmm(self.b_c1, z, self.w_c1)), self.w_c2)
             pooled = torch.cat([pooled, torch.relu(c)], dim=-1)  # (M, N, Q + Hc)
         logits = torch.baddbmm(self.b_out, pooled, self.w_out).squeeze(-1)  # (M, N)

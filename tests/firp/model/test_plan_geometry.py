@@ -313,7 +313,7 @@ def test_clearance_columns_read_the_plan(planned):
     assert torch.all(only[:, 9:12] == CLEARANCE_FAR) and torch.all(only[:, 12:] == 0)
 
 
-def test_plan_description_config_flags_and_models():
+def test_plan_description_config_flags_and_models(capsys):
     import argparse
 
     from firp.flags import add_model_flags, add_training_flags, recipe_flags, recipe_from
@@ -328,8 +328,12 @@ def test_plan_description_config_flags_and_models():
     config, overrides = recipe_from(parser.parse_args(["--data", "x", "--plan-description", "clearance"]))
     assert config.model.geometry.enabled and config.model.geometry.description == "clearance"
     assert recipe_flags("product", overrides) == "--preset product --plan-description clearance"
+    contradicting = parser.parse_args(["--data", "x", "--plan-description", "both", "--no-plan-geometry"])
     with pytest.raises(ValueError, match="drop one of the two"):
-        recipe_from(parser.parse_args(["--data", "x", "--plan-description", "both", "--no-plan-geometry"]))
+        recipe_from(contradicting)
+    with pytest.raises(SystemExit):  # with the parser: its CLI error
+        recipe_from(contradicting, parser)
+    assert "--plan-description: the recipe leaves the plan's description out" in capsys.readouterr().err
     cfg = FIRPConfig(encoder=EncoderConfig(feature_dim=8, projection_hidden=0),
                      rssm=RSSMConfig(deter_dim=8, stoch_dim=4, hidden=8),
                      geometry=GeometryConfig(enabled=True, description="clearance"), action_chunk=8)
