@@ -15,17 +15,25 @@ This experiment reads a dataset's plans and reports, on ``firp evaluate``'s spli
   models are: seed and threshold chosen on the validation episodes) on the grasp-frame description, on
   the clearance, and on both -- what each kind of learner takes from each, the yardstick for the
   models that read them (``--plan-description``);
-* the learning curve of gradient boosting on both and of the MLP on the clearance (``--fractions``).
+* learning curves (``--fractions`` of each repeat's training episodes, ``--curves`` which learners on
+  which inputs; by default gradient boosting on both and the MLP on the clearance), drawn with
+  ``--curve-plot``: do the learners still gain from more episodes, and which input gains most?
+  ``--first N`` reads a larger set's first N episodes, so one collection gives both sizes' numbers.
 
     python -m experiments.grasp_clearance --data data/robosuite_stack_three.h5 \\
         --out docs/results/robosuite_stack_three_grasp_clearance.json \\
         --plot docs/results/robosuite_stack_three_grasp_clearance.png
+    python -m experiments.grasp_clearance --data data/robosuite_stack_three_workspaceview_2000.h5 \
+        --curves description_and_clearance:gradient_boosting clearance:mlp description_and_clearance:mlp \
+        --out runs/curves.json --curve-plot runs/curves.png
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +44,11 @@ from firp.metrics import balanced_accuracy, choose_threshold
 
 #: bin edges (metres) of the smallest finger clearance
 BINS = (-np.inf, -0.01, -0.005, 0.0, 0.005, 0.01, 0.02, np.inf)
+#: the inputs the learners read, and the learners
+INPUTS = ("description", "clearance", "description_and_clearance")
+LEARNERS = ("gradient_boosting", "mlp")
+#: the learning curves drawn unless --curves says otherwise: the two best learners on 800 episodes
+DEFAULT_CURVES = ("description_and_clearance:gradient_boosting", "clearance:mlp")
 
 
 def describe(actions: np.ndarray, max_picks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -118,29 +131,91 @@ def mlp_score(X: np.ndarray, labels: np.ndarray, train: np.ndarray, valid: np.nd
     return float(best[1])
 
 
-def main(argv: list[str] | None = None) -> int:
+def curve(text: str) -> tuple[str, str]:
+    """``INPUT:LEARNER`` (argparse type of ``--curves``)."""
+    name, _, learner = text.partition(":")
+    if name not in INPUTS or learner not in LEARNERS:
+        raise argparse.ArgumentTypeError(f"{text!r}: give INPUT:LEARNER, INPUT one of {', '.join(INPUTS)}, "
+                                         f"LEARNER one of {', '.join(LEARNERS)}")
+    return name, learner
+
+
+def learner_score(learner: str, X: np.ndarray, labels: np.ndarray, train: np.ndarray, valid: np.ndarray,
+                  test: np.ndarray, seed: int) -> float:
+    """Test balanced accuracy of ``learner`` on ``X``: gradient boosting fits the training and validation
+    episodes (its threshold 0.5), the MLP fits the training ones and chooses on the validation ones."""
+    if learner == "mlp":
+        return mlp_score(X, labels, train, valid, test)
     from sklearn.ensemble import GradientBoostingClassifier
 
+    seen = np.concatenate([train, valid])
+    model = GradientBoostingClassifier(random_state=seed).fit(X[seen], labels[seen])
+    return balanced_accuracy(labels[test], model.predict_proba(X[test])[:, 1] >= 0.5)
+
+
+def plot_curves(curves: list[dict], path: Path, title: str) -> None:
+    """Test balanced accuracy (mean and std over the repeats) against training episodes, log-2 axis."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for c in curves:
+        x = [p["training_episodes"] for p in c["points"]]
+        mean = np.array([p["mean"] for p in c["points"]])
+        std = np.array([p["std"] for p in c["points"]])
+        line, = ax.plot(x, mean, marker="o", label=c["name"].replace("_", " ").replace(":", ", "))
+        ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.15)
+    ax.set_xscale("log", base=2)
+    ax.set_xlabel("training episodes per repeat (the validation episodes on top)")
+    ax.set_ylabel("test balanced accuracy")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
     from firp.data import stratified_split
 
+    argv = sys.argv[1:] if argv is None else list(argv)
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--first", type=int, default=None, metavar="N",
+                        help="read only the dataset's first N episodes (a larger set's smaller subset: seeds 0..N-1)")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--max-picks", type=int, default=3)
     parser.add_argument("--fractions", nargs="*", type=float, default=[0.25, 0.5, 0.75],
                         help="also train on these shares of each repeat's training episodes: do they still gain?")
+    parser.add_argument("--curves", nargs="+", type=curve, default=[curve(c) for c in DEFAULT_CURVES],
+                        metavar="INPUT:LEARNER",
+                        help=f"the learners whose learning curves are measured (default {' '.join(DEFAULT_CURVES)}; "
+                             f"INPUT one of {', '.join(INPUTS)}, LEARNER one of {', '.join(LEARNERS)})")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--plot", type=Path, default=None)
+    parser.add_argument("--curve-plot", type=Path, default=None, help="draw the learning curves here (PNG)")
     args = parser.parse_args(argv)
     if not args.data.exists():
         parser.error(f"--data: {args.data} does not exist")
+    bad = [f for f in args.fractions if not 0.0 < f < 1.0]
+    if bad:
+        parser.error(f"--fractions: each share must lie strictly between 0 and 1 (all of them is always run), got {bad}")
+    if args.first is not None and args.first < 10:
+        parser.error(f"--first: read at least 10 episodes, got {args.first}")
     with EpisodeDataset(args.data) as ds:
-        labels = ds.success_labels().astype(bool)
-        actions = np.stack([ds.actions(name) for name in ds.demo_names])  # (N, T, 16)
+        if args.first is not None and args.first > len(ds.demo_names):
+            parser.error(f"--first: {args.data} holds {len(ds.demo_names)} episodes, fewer than {args.first}")
+        names = ds.demo_names[:args.first]
+        labels = ds.success_labels().astype(bool)[:len(names)]
+        actions = np.stack([ds.actions(name) for name in names])  # (N, T, 16)
     description, clearance, finger = describe(actions, args.max_picks)
     features = {"description": description, "clearance": clearance,
                 "description_and_clearance": np.hstack([description, clearance])}
-    rows = []
+    rows, sizes = [], {}
     for repeat in range(args.repeats):
         train, valid, test = split_indices(labels.astype(int), repeat)
         seen = np.concatenate([train, valid])
@@ -148,34 +223,39 @@ def main(argv: list[str] | None = None) -> int:
         row = {"repeat": repeat, "finger_clearance_rule": balanced_accuracy(labels[test], finger[test] >= threshold),
                "finger_clearance_threshold_m": float(threshold)}
         for name, X in features.items():
-            model = GradientBoostingClassifier(random_state=repeat).fit(X[seen], labels[seen])
-            row[f"{name}_gradient_boosting"] = balanced_accuracy(labels[test], model.predict_proba(X[test])[:, 1] >= 0.5)
-            row[f"{name}_mlp"] = mlp_score(X, labels, train, valid, test)
-        for fraction in args.fractions:  # the learning curve of the two best learners
+            for learner in LEARNERS:
+                row[f"{name}_{learner}"] = learner_score(learner, X, labels, train, valid, test, repeat)
+        sizes[1.0] = len(train)
+        for fraction in args.fractions:  # the learning curves
             share, _ = stratified_split(labels[train].astype(int), 1.0 - fraction, seed=repeat)
-            part = np.concatenate([train[share], valid])
-            X = features["description_and_clearance"]
-            model = GradientBoostingClassifier(random_state=repeat).fit(X[part], labels[part])
-            row[f"description_and_clearance_gradient_boosting@{fraction:g}"] = balanced_accuracy(
-                labels[test], model.predict_proba(X[test])[:, 1] >= 0.5)
-            row[f"clearance_mlp@{fraction:g}"] = mlp_score(clearance, labels, train[share], valid, test)
+            sizes[fraction] = len(share)
+            for name, learner in args.curves:
+                row[f"{name}_{learner}@{fraction:g}"] = learner_score(learner, features[name], labels, train[share],
+                                                                      valid, test, repeat)
         rows.append(row)
-        print(f"repeat {repeat}: " + ", ".join(f"{k} {v:.3f}" for k, v in row.items() if k != "repeat"))
+        print(f"repeat {repeat}: " + ", ".join(f"{k} {v:.3f}" for k, v in row.items() if k != "repeat"), flush=True)
     summary = {k: [float(np.mean([r[k] for r in rows])), float(np.std([r[k] for r in rows], ddof=1))]
                for k in rows[0] if k != "repeat"}
+    curves = []
+    for name, learner in args.curves:
+        keys = [(sizes[f], f"{name}_{learner}@{f:g}") for f in sorted(args.fractions)] + [(sizes[1.0], f"{name}_{learner}")]
+        curves.append({"name": f"{name}:{learner}", "points": [
+            {"training_episodes": n, "mean": summary[k][0], "std": summary[k][1]} for n, k in keys]})
     bins = by_bins(finger, labels)
     print("smallest finger clearance -> success rate:")
     for b in bins:
         print(f"  [{b['from_m']}, {b['to_m']}): {b['plans']} plans, "
               f"{'-' if b['success_rate'] is None else format(b['success_rate'], '.3f')}")
-    command = f"python -m experiments.grasp_clearance --data {args.data} --out {args.out}" + (
-        f" --plot {args.plot}" if args.plot else "")
+    command = "python -m experiments.grasp_clearance " + " ".join(shlex.quote(a) for a in argv)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"data": str(args.data), "episodes": len(labels), "training_episodes": len(train),
+    args.out.write_text(json.dumps({"data": str(args.data), "first": args.first, "episodes": len(labels), "training_episodes": len(train),
                                     "validation_episodes": len(valid), "rows": rows, "mean_std": summary,
-                                    "bins": bins, "command": command}, indent=1))
+                                    "curves": curves, "bins": bins, "command": command}, indent=1))
     if args.plot:
         plot(bins, finger, labels, args.plot, f"{args.data.stem}: the open fingers' clearance to the other blocks")
+    if args.curve_plot:
+        plot_curves(curves, args.curve_plot, f"{args.data.stem} ({len(labels)} plans): learning curves, "
+                                             f"{args.repeats} repeats")
     print(json.dumps(summary))
     return 0
 

@@ -41,6 +41,51 @@ def test_the_analysis_reads_a_recorded_dataset(tiny_dataset, tmp_path):
     assert np.all(np.isclose(per_pick.reshape(20, -1), finger[:, None]).any(axis=1) | np.isinf(finger))
 
 
+def test_chosen_learning_curves_are_measured_drawn_and_reproducible(tiny_dataset, tmp_path):
+    out, picture = tmp_path / "curves.json", tmp_path / "curves.png"
+    argv = ["--data", str(tiny_dataset), "--repeats", "2", "--fractions", "0.5", "0.75",
+            "--curves", "description_and_clearance:mlp", "clearance:gradient_boosting", "--out", str(out),
+            "--curve-plot", str(picture)]
+    assert main(argv) == 0
+    result = json.loads(out.read_text())
+    assert [c["name"] for c in result["curves"]] == ["description_and_clearance:mlp", "clearance:gradient_boosting"]
+    for c in result["curves"]:
+        sizes = [p["training_episodes"] for p in c["points"]]
+        assert len(sizes) == 3 and sizes == sorted(sizes) and sizes[-1] == result["training_episodes"]
+        name = c["name"].replace(":", "_")
+        assert c["points"][0]["mean"] == result["mean_std"][f"{name}@0.5"][0]
+        assert c["points"][-1]["mean"] == result["mean_std"][name][0]
+    assert "description_and_clearance_mlp@0.75" in result["rows"][0]
+    assert "clearance_mlp@0.5" not in result["rows"][0]  # only the curves asked for
+    assert picture.stat().st_size > 10_000
+    assert result["command"] == "python -m experiments.grasp_clearance " + " ".join(argv)
+
+
+@pytest.mark.parametrize("flag, value, rule", [("--curves", "clearance:forest", "LEARNER one of"),
+                                               ("--curves", "pixels:mlp", "INPUT one of"),
+                                               ("--fractions", "1.0", "strictly between 0 and 1"),
+                                               ("--first", "5", "at least 10"),
+                                               ("--first", "25", "fewer than 25")])
+def test_bad_curves_and_fractions_name_the_flag_and_rule(tiny_dataset, tmp_path, capsys, flag, value, rule):
+    with pytest.raises(SystemExit):
+        main(["--data", str(tiny_dataset), "--out", str(tmp_path / "x.json"), flag, value])
+    err = capsys.readouterr().err
+    assert flag in err and rule in err
+
+
+def test_first_reads_the_first_episodes_only(tiny_dataset, tmp_path):
+    out = tmp_path / "first.json"
+    assert main(["--data", str(tiny_dataset), "--first", "16", "--repeats", "1", "--fractions", "0.5",
+                 "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["episodes"] == 16 and sum(b["plans"] for b in result["bins"]) == 16
+    with EpisodeDataset(tiny_dataset) as ds:
+        labels = ds.success_labels()[:16]
+    assert [b["plans"] for b in result["bins"]] and result["training_episodes"] + result["validation_episodes"] < 16
+    rate = sum(b["plans"] * b["success_rate"] for b in result["bins"] if b["plans"]) / 16
+    assert rate == pytest.approx(labels.mean())
+
+
 def test_a_missing_dataset_names_the_flag(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--data", str(tmp_path / "missing.h5"), "--out", str(tmp_path / "x.json")])
