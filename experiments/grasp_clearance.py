@@ -23,8 +23,8 @@ This experiment reads a dataset's plans and reports, on ``firp evaluate``'s spli
     python -m experiments.grasp_clearance --data data/robosuite_stack_three.h5 \\
         --out docs/results/robosuite_stack_three_grasp_clearance.json \\
         --plot docs/results/robosuite_stack_three_grasp_clearance.png
-    python -m experiments.grasp_clearance --data data/robosuite_stack_three_workspaceview_2000.h5 \
-        --curves description_and_clearance:gradient_boosting clearance:mlp description_and_clearance:mlp \
+    python -m experiments.grasp_clearance --data data/robosuite_stack_three_workspaceview_2000.h5 \\
+        --curves description_and_clearance:gradient_boosting clearance:mlp description_and_clearance:mlp \\
         --out runs/curves.json --curve-plot runs/curves.png
 """
 
@@ -249,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
     for b in bins:
         print(f"  [{b['from_m']}, {b['to_m']}): {b['plans']} plans, "
               f"{'-' if b['success_rate'] is None else format(b['success_rate'], '.3f')}")
-    command = "python -m experiments.grasp_clearance " + " ".join(shlex.quote(a) for a in argv)
+    command = f"python -m experiments.grasp_clearance {shlex.join(argv)}"
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"data": str(args.data), "first": args.first, "episodes": len(labels), "training_episodes": len(train),
                                     "validation_episodes": len(valid), "rows": rows, "mean_std": summary,
