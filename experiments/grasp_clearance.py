@@ -13,8 +13,11 @@ This experiment reads a dataset's plans and reports, on ``firp evaluate``'s spli
   threshold (chosen on each repeat's training and validation episodes);
 * gradient boosting (trained on the training and validation episodes) and a 64-unit MLP (trained as the
   models are: seed and threshold chosen on the validation episodes) on the grasp-frame description, on
-  the clearance, and on both -- what each kind of learner takes from each, the yardstick for the
-  models that read them (``--plan-description``);
+  the clearance, on the clearance with each pick's grasp and release heights, and on the description
+  and the clearance -- what each kind of learner takes from each, the yardstick for the models that
+  read them (``--plan-description``);
+* where gradient boosting on the description and the clearance draws from: its feature importance's
+  shares on the clearance, on each pick's heights, and on the other grasp-frame numbers;
 * learning curves (``--fractions`` of each repeat's training episodes, ``--curves`` which learners on
   which inputs; by default gradient boosting on both and the MLP on the clearance), drawn with
   ``--curve-plot``: do the learners still gain from more episodes, and which input gains most?
@@ -45,7 +48,7 @@ from firp.metrics import balanced_accuracy, choose_threshold
 #: bin edges (metres) of the smallest finger clearance
 BINS = (-np.inf, -0.01, -0.005, 0.0, 0.005, 0.01, 0.02, np.inf)
 #: the inputs the learners read, and the learners
-INPUTS = ("description", "clearance", "description_and_clearance")
+INPUTS = ("description", "clearance", "clearance_and_heights", "description_and_clearance")
 LEARNERS = ("gradient_boosting", "mlp")
 #: the learning curves drawn unless --curves says otherwise: the two best learners on 800 episodes
 DEFAULT_CURVES = ("description_and_clearance:gradient_boosting", "clearance:mlp")
@@ -64,6 +67,17 @@ def describe(actions: np.ndarray, max_picks: int) -> tuple[np.ndarray, np.ndarra
     present = description[:, ::G // max_picks][:, :max_picks] > 0  # each pick's presence flag
     at_grasps = clearance.reshape(len(full), max_picks, 6)[:, :, :2].min(axis=2)  # (N, P): pads and fingers
     return description, clearance, np.where(present, at_grasps, np.inf).min(axis=1)
+
+
+def clearance_and_heights(actions: np.ndarray, max_picks: int) -> np.ndarray:
+    """``(N, T, 16)`` plans -> the clearance and each pick's grasp and release heights ``(N, 9 P)``, the
+    product's ``--plan-description clearance_and_heights``."""
+    import torch
+
+    from firp.model.plan_geometry import plan_geometry
+
+    return plan_geometry(torch.as_tensor(actions, dtype=torch.float64), None, max_picks,
+                         description="clearance_and_heights").numpy()
 
 
 def by_bins(finger: np.ndarray, labels: np.ndarray) -> list[dict]:
@@ -153,6 +167,22 @@ def learner_score(learner: str, X: np.ndarray, labels: np.ndarray, train: np.nda
     return balanced_accuracy(labels[test], model.predict_proba(X[test])[:, 1] >= 0.5)
 
 
+def importance_shares(description: np.ndarray, clearance: np.ndarray, labels: np.ndarray, seen: np.ndarray,
+                      seed: int, max_picks: int) -> dict[str, float]:
+    """Where gradient boosting on the description and the clearance draws from: the shares of its feature
+    importance on the clearance, on each pick's grasp and release heights (the grasp-frame numbers'
+    grasp z, release z and rise, what ``clearance_and_heights`` adds), and on the other grasp-frame numbers."""
+    from sklearn.ensemble import GradientBoostingClassifier
+
+    model = GradientBoostingClassifier(random_state=seed).fit(np.hstack([description, clearance])[seen], labels[seen])
+    importance = model.feature_importances_
+    per_pick = description.shape[1] // max_picks
+    heights = [k * per_pick + j for k in range(max_picks) for j in (3, 6, 7)]  # grasp z, release z, rise
+    shares = {"clearance": float(importance[description.shape[1]:].sum()), "heights": float(importance[heights].sum())}
+    shares["other_grasp_frame"] = float(1.0 - shares["clearance"] - shares["heights"])
+    return shares
+
+
 def plot_curves(curves: list[dict], path: Path, title: str) -> None:
     """Test balanced accuracy (mean and std over the repeats) against training episodes, log-2 axis."""
     import matplotlib
@@ -217,6 +247,7 @@ def main(argv: list[str] | None = None) -> int:
         actions = np.stack([ds.actions(name) for name in names])  # (N, T, 16)
     description, clearance, finger = describe(actions, args.max_picks)
     features = {"description": description, "clearance": clearance,
+                "clearance_and_heights": clearance_and_heights(actions, args.max_picks),
                 "description_and_clearance": np.hstack([description, clearance])}
     rows, sizes = [], {}
     for repeat in range(args.repeats):
@@ -228,6 +259,8 @@ def main(argv: list[str] | None = None) -> int:
         for name, X in features.items():
             for learner in LEARNERS:
                 row[f"{name}_{learner}"] = learner_score(learner, X, labels, train, valid, test, repeat)
+        for part, share in importance_shares(description, clearance, labels, seen, repeat, args.max_picks).items():
+            row[f"gradient_boosting_importance_{part}"] = share
         sizes[1.0] = len(train)
         for fraction in args.fractions:  # the learning curves
             share, _ = stratified_split(labels[train].astype(int), 1.0 - fraction, seed=repeat)

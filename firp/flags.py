@@ -59,7 +59,8 @@ def add_model_flags(parser: argparse.ArgumentParser) -> None:
                    help="give every plan-reading model the plan's grasp-frame description (firp.model.plan_geometry)")
     g.add_argument("--plan-description", choices=PLAN_DESCRIPTIONS, default=None,
                    help="what that description holds: the numbers in each grasp's frame (product), how near the "
-                        "hand comes to the nearest other block at each grasp and release, or both")
+                        "hand comes to the nearest other block at each grasp and release (clearance), that and "
+                        "each pick's grasp and release heights (clearance_and_heights), or the first two (both)")
 
 
 def add_loss_flags(parser: argparse.ArgumentParser) -> None:

@@ -122,8 +122,9 @@ class HeadConfig:
 
 
 #: What a plan's description (:mod:`firp.model.plan_geometry`) holds: the numbers in each grasp's frame, the
-#: hand's clearance to the other blocks, or both.
-PLAN_DESCRIPTIONS = ("grasp_frame", "clearance", "both")
+#: hand's clearance to the other blocks, that clearance with each pick's grasp and release heights, or the
+#: grasp-frame numbers and the clearance.
+PLAN_DESCRIPTIONS = ("grasp_frame", "clearance", "clearance_and_heights", "both")
 
 
 @dataclass(frozen=True)
@@ -138,7 +139,9 @@ class GeometryConfig:
     ``description`` says what it holds: ``grasp_frame`` (the numbers in each grasp's frame, what the
     shipped bundles read), ``clearance`` (how near the hand's fingertip pads, fingers and body come to
     the nearest other block at each grasp and release, assuming square blocks of half-size
-    ``object_half``: 6 numbers per pick) or ``both``.
+    ``object_half``: 6 numbers per pick), ``clearance_and_heights`` (those 6 and the heights at which the
+    pick's grasp closes and its release opens, and the release's rise over the first release: 9 per pick)
+    or ``both`` (the grasp-frame numbers and the clearance).
     """
 
     enabled: bool = False

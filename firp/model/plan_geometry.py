@@ -46,6 +46,12 @@ half-size ``object_half``, each block turned as its grasp:
 Clipped to :data:`CLEARANCE_FAR` (a block farther away does not matter, and no block reads as far,
 not as touching).
 
+``description="clearance_and_heights"`` adds, per pick, the heights at which the grasp closes and the
+release opens and the release's rise (:data:`PICK_HEIGHTS`): on robosuite's stacking, gradient
+boosting on the 150 grasp-frame numbers and the clearance draws nearly all it uses beyond the clearance
+from these few columns, and a small MLP given the clearance and the heights alone comes within 0.01 of
+it, where given all 168 columns it loses 0.07 (``experiments/grasp_clearance.py``).
+
 Missing picks (a shorter plan) are zeros with a presence flag, so one width serves any plan.
 """
 
@@ -64,6 +70,7 @@ __all__ = [
     "CLEARANCE_FAR",
     "DEFAULT_MAX_PICKS",
     "HAND_PARTS",
+    "PICK_HEIGHTS",
     "PANDA_DH",
     "PlanGeometry",
     "build_plan_geometry",
@@ -100,6 +107,9 @@ FINGER_PAD = (0.0144, 0.0088)
 FINGER_BODY = (0.0265, 0.0105)
 HAND_SLAB_HALF = (0.104, 0.019)
 HAND_PARTS = ("pad", "finger", "hand")
+#: ``description="clearance_and_heights"``'s numbers per pick beside the clearance: the grasp's and the
+#: release's TCP height and the release's rise over the first release (how high on the tower it goes).
+PICK_HEIGHTS = ("grasp_z", "release_z", "rise")
 #: Clearances are clipped to this many metres: an absent block, or one farther away, reads as far.
 CLEARANCE_FAR = 0.1
 #: Half-size of the square the clearance assumes at a neighbour (the tasks' cubes: 0.02-0.025 m).
@@ -303,7 +313,10 @@ def geometry_dim(max_picks: int = DEFAULT_MAX_PICKS, description: str = "grasp_f
     _check_description(description)
     P = max_picks
     per_pick = 1 + 3 + 3 + 1 + 8 * (P - 1) + 8 * P + 2  # presence, grasp xyz, release xyz, rise, grasps, releases, tower
-    return (P * per_pick if description != "clearance" else 0) + (clearance_dim(P) if description != "grasp_frame" else 0)
+    grasp_frame = P * per_pick if description in ("grasp_frame", "both") else 0
+    clearance = clearance_dim(P) if description != "grasp_frame" else 0
+    heights = P * len(PICK_HEIGHTS) if description == "clearance_and_heights" else 0
+    return grasp_frame + clearance + heights
 
 
 def _check_description(description: str) -> None:
@@ -371,11 +384,20 @@ def plan_geometry(actions: Tensor, mask: Tensor | None = None, max_picks: int = 
     numbers, the hand's clearance, or both (see the module docstring)."""
     _check_description(description)
     ev = pick_events(actions, mask, max_picks)
-    rows = _grasp_frame_rows(ev, actions.dtype) if description != "clearance" else []
+    rows = _grasp_frame_rows(ev, actions.dtype) if description in ("grasp_frame", "both") else []
     if description != "grasp_frame":
         present = ev["present"].to(actions.dtype)
         rows += [_pick_clearances(ev, k, object_half) * present[:, k : k + 1] for k in range(max_picks)]
+    if description == "clearance_and_heights":
+        rows += [_pick_heights(ev, k) * ev["present"][:, k : k + 1].to(actions.dtype) for k in range(max_picks)]
     return torch.cat(rows, dim=-1)  # (B, G)
+
+
+def _pick_heights(ev: dict[str, Tensor], k: int) -> Tensor:
+    """Pick ``k``'s heights (B, 3), :data:`PICK_HEIGHTS`: where its grasp closes and its release opens (the
+    TCP's z in the robot base's frame) and the release's rise over the first release."""
+    grasp_z, release_z = ev["grasp_pos"][:, k, 2], ev["release_pos"][:, k, 2]
+    return torch.stack([grasp_z, release_z, release_z - ev["release_pos"][:, 0, 2]], dim=-1)
 
 
 def standardise(description: Tensor, mean: Tensor, std: Tensor) -> Tensor:

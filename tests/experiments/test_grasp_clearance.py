@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from experiments.grasp_clearance import by_bins, describe, main
+from experiments.grasp_clearance import by_bins, clearance_and_heights, describe, main
 from firp.core.episodes import EpisodeDataset
 
 
@@ -29,13 +29,19 @@ def test_the_analysis_reads_a_recorded_dataset(tiny_dataset, tmp_path):
     assert sum(b["plans"] for b in result["bins"]) == 20
     for key in ("finger_clearance_rule", "description_gradient_boosting", "clearance_gradient_boosting",
                 "description_and_clearance_gradient_boosting", "clearance_mlp", "description_mlp",
+                "clearance_and_heights_mlp", "clearance_and_heights_gradient_boosting",
                 "description_and_clearance_gradient_boosting@0.5", "clearance_mlp@0.5"):
         assert 0.0 <= result["mean_std"][key][0] <= 1.0
+    shares = [result["rows"][0][f"gradient_boosting_importance_{part}"] for part in ("clearance", "heights",
+                                                                                   "other_grasp_frame")]
+    assert all(0.0 <= share <= 1.0 for share in shares) and sum(shares) == pytest.approx(1.0)
     assert picture.stat().st_size > 10_000
     with EpisodeDataset(tiny_dataset) as ds:
         actions = np.stack([ds.actions(name) for name in ds.demo_names])
     description, clearance, finger = describe(actions, 3)
     assert clearance.shape == (20, 18)
+    with_heights = clearance_and_heights(actions, 3)
+    assert with_heights.shape == (20, 27) and np.array_equal(with_heights[:, :18], clearance)
     # each plan's smallest finger clearance is one of its present picks' pad or finger columns
     per_pick = clearance.reshape(20, 3, 6)[:, :, :2]
     assert np.all(np.isclose(per_pick.reshape(20, -1), finger[:, None]).any(axis=1) | np.isinf(finger))

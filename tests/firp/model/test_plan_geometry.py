@@ -313,6 +313,25 @@ def test_clearance_columns_read_the_plan(planned):
     assert torch.all(only[:, 9:12] == CLEARANCE_FAR) and torch.all(only[:, 12:] == 0)
 
 
+def test_clearance_and_heights_columns(planned):
+    from firp.model.plan_geometry import PICK_HEIGHTS, clearance_dim
+
+    a = _actions(planned["stacking"])
+    only = plan_geometry(a, description="clearance")
+    with_heights = plan_geometry(a, description="clearance_and_heights")
+    P = 3
+    assert with_heights.shape == (3, geometry_dim(description="clearance_and_heights")) == (3, clearance_dim() + 3 * P)
+    assert torch.equal(with_heights[:, :clearance_dim()], only)
+    heights = with_heights[:, clearance_dim():].reshape(3, P, len(PICK_HEIGHTS))
+    ev = pick_events(a)
+    torch.testing.assert_close(heights[:, :2, 0], ev["grasp_pos"][:, :2, 2])  # where each grasp closes
+    torch.testing.assert_close(heights[:, :2, 1], ev["release_pos"][:, :2, 2])  # where each release opens
+    assert torch.all(heights[:, 0, 2] == 0)  # the first release rises over itself by nothing
+    # stacking's second release goes on top of the first block: it rises by about a block
+    assert torch.all((heights[:, 1, 2] > 0.02) & (heights[:, 1, 2] < 0.1))
+    assert torch.all(heights[:, 2] == 0)  # the absent third pick: zeros, as its clearance
+
+
 def test_plan_description_config_flags_and_models(capsys):
     import argparse
 
@@ -340,3 +359,6 @@ def test_plan_description_config_flags_and_models(capsys):
     assert FIRPConfig.from_dict(cfg.to_dict()) == cfg
     for kind in ("firp", "a_mlp"):
         assert build_model(kind, cfg).geometry.dim == geometry_dim(description="clearance")
+    config, overrides = recipe_from(parser.parse_args(["--data", "x", "--plan-description", "clearance_and_heights"]))
+    assert config.model.geometry.description == "clearance_and_heights"
+    assert build_model("gru", config.model).geometry.dim == geometry_dim(description="clearance_and_heights") == 27
