@@ -290,13 +290,13 @@ def plot(summary: dict, errors: dict, firp_ensemble: float | None, target: float
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    fig, ax = plt.subplots(figsize=(8, 6.5))
     xs = [0.0, *SEEN_ERRORS]
     keys = ["choice_and_true_grip", *(f"true_grip_seen_with_error@{e:g}" for e in SEEN_ERRORS)]
     means = [summary[k][0] for k in keys]
     stds = [summary[k][1] for k in keys]
     ax.errorbar(xs, means, yerr=stds, marker="o", capsize=3, label="choice + the grip as a scorer sees it")
-    for key, style, text in (("choice", "--", "the choice exactly (the plan alone)"),
+    for key, style, text in (("choice", "--", "the planner's choice exactly"),
                              ("plan_geometry", ":", "the plan's grasp-frame description")):
         ax.axhline(summary[key][0], linestyle=style, color="grey", label=f"{text}: {summary[key][0]:.3f}")
     if "small_cnn_cross_fitted" in errors:
@@ -318,7 +318,7 @@ def plot(summary: dict, errors: dict, firp_ensemble: float | None, target: float
     ax.set_ylabel("test balanced accuracy (gradient boosting)")
     ax.set_title("nut_assembly: the grip's millimetres, and how well the image shows them")
     ax.set_xlim(-0.3, max(12.0, 1.1 * max((errors[k]["handle_centre_rmse_mm"][0] for k in errors), default=0.0)))
-    ax.legend(fontsize=7, loc="lower left")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
