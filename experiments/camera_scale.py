@@ -42,7 +42,7 @@ def pixels_per_cm(matrix: np.ndarray, point: np.ndarray) -> tuple[float, float]:
 def measure(task: str, camera: str, image_size: int, scenes: int) -> dict:
     from robosuite.utils.camera_utils import get_camera_transform_matrix
 
-    from robosuite_worker.tasks import check_task
+    from robosuite_worker.tasks import body_pose, check_task
     from robosuite_worker.world import RobosuiteWorld
 
     world = RobosuiteWorld(image_size=image_size, camera=camera, tasks=(task,))
@@ -50,10 +50,11 @@ def measure(task: str, camera: str, image_size: int, scenes: int) -> dict:
     rows = []
     try:
         for seed in range(scenes):
-            env = world._reset(task, seed)
+            world.begin(task, seed, pose_error_mm=0.0, pose_error_deg=0.0)  # the scene at rest, as episodes start
+            env = world.env(task)
             matrix = get_camera_transform_matrix(env.sim, camera, image_size, image_size)
             for name, body in spec.objects(env).items():
-                x, y = pixels_per_cm(matrix, np.array(env.sim.data.body_xpos[body]))
+                x, y = pixels_per_cm(matrix, body_pose(env, body)[0])
                 rows.append({"seed": seed, "object": name, "px_per_cm_x": x, "px_per_cm_y": y})
     finally:
         world.close()

@@ -58,6 +58,9 @@ from firp.core.episodes import EpisodeDataset
 from firp.evaluate import split_indices
 from firp.metrics import balanced_accuracy
 
+# numpy only: importing it does not import robosuite, which the main environment lacks
+from robosuite_worker.tasks import quat_yaw
+
 #: robosuite's ``NutAssemblySquare`` state: 7 arm joints and 2 finger joints, then the square nut's free joint
 #: (x, y, z, then the quaternion w, x, y, z) -- checked against the planner's estimates on every episode
 NUT_QPOS = slice(9, 16)
@@ -65,19 +68,12 @@ NUT_QPOS = slice(9, 16)
 #: is not the one above (the estimate's error is a few millimetres)
 LAYOUT_CHECK_M = 0.02
 SEEN_ERRORS = (0.5, 1.0, 2.0, 3.0, 5.0)  # mm and degrees a scorer might locate the nut with
-CLASSIFIERS = ("choice", "plan_geometry", "choice_and_true_grip")
 CROSS_FIT_FOLDS = 3  # CNNs per repeat that locate the nut in the episodes they did not see
 
 
 def wrap(angle: np.ndarray, period: float) -> np.ndarray:
     """Angles to ``[-period / 2, period / 2)``."""
     return (angle + period / 2) % period - period / 2
-
-
-def quaternion_yaw(quat_wxyz: np.ndarray) -> np.ndarray:
-    """``(..., 4)`` MuJoCo quaternions (w, x, y, z) -> yaw about world z ``(...)``."""
-    w, x, y, z = np.moveaxis(quat_wxyz, -1, 0)
-    return np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
 
 
 def true_nut_poses(first_states: np.ndarray, estimates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -90,7 +86,7 @@ def true_nut_poses(first_states: np.ndarray, estimates: np.ndarray) -> tuple[np.
         raise ValueError(f"states: episode {worst}'s nut (qpos {NUT_QPOS.start}-{NUT_QPOS.stop - 1}) lies "
                          f"{100 * off[worst]:.1f} cm from the planner's estimate; not a NutAssemblySquare dataset "
                          f"with the state layout this experiment reads")
-    return nut[:, :2], quaternion_yaw(nut[:, 3:7])
+    return nut[:, :2], np.array([quat_yaw(q) for q in nut[:, 3:7]])
 
 
 def grip_on_handle(grasp_xy: np.ndarray, finger_yaw: np.ndarray, axis: np.ndarray, nut_xy: np.ndarray,
@@ -162,15 +158,12 @@ def seen_with_error(data: dict, error: float, seed: int) -> np.ndarray:
     """The choice and the grip as a scorer sees it that locates the nut with ``error`` mm and degrees."""
     rng = np.random.default_rng(seed)
     n = len(data["labels"])
-    handle = data["handle"]
     # the scorer's belief of the nut: the truth moved by the error (the handle's centre by error mm, the yaw
     # by error degrees about it), and the grip read in that believed frame
     yaw = data["true_yaw"] + np.radians(rng.normal(0.0, error, n))
     centre = data["true_handle"] + rng.normal(0.0, error / 1000, (n, 2))
-    c, s = np.cos(yaw), np.sin(yaw)
-    nut_xy = centre - np.stack([c * handle[0] - s * handle[1], s * handle[0] + c * handle[1]], axis=1)
-    grip = grip_on_handle(data["grasp_xy"], data["finger_yaw"], data["axis"], nut_xy, yaw, handle)
-    return np.concatenate([data["choices"], grip], axis=1)
+    believed = np.concatenate([centre, np.cos(yaw)[:, None], np.sin(yaw)[:, None]], axis=1)
+    return np.concatenate([data["choices"], grip_seen_at(data, believed)], axis=1)
 
 
 def classify(X: np.ndarray, labels: np.ndarray, train: np.ndarray, test: np.ndarray, seed: int) -> float:

@@ -17,7 +17,6 @@ from experiments.nut_perception import (
     handle_centres,
     main,
     pose_targets,
-    quaternion_yaw,
     read,
     true_nut_poses,
 )
@@ -45,10 +44,13 @@ def test_a_grip_at_the_handles_centre_reads_zero_and_moves_with_the_hand():
     assert np.allclose(grip_on_handle(centre, along, np.array([1]), nut_xy, nut_yaw, HANDLE), [[0.0, 0.0, 2.0]])
 
 
-def test_yaw_from_a_mujoco_quaternion():
+def test_the_nuts_yaw_comes_from_its_recorded_quaternion():
     yaws = np.array([0.7, -2.5, 3.0])
     quats = np.stack([np.cos(yaws / 2), 0 * yaws, 0 * yaws, np.sin(yaws / 2)], axis=1)
-    assert np.allclose(quaternion_yaw(quats), yaws)
+    states = np.zeros((3, 44))
+    states[:, NUT_QPOS.start + 3:NUT_QPOS.stop] = quats
+    _, yaw = true_nut_poses(states, np.zeros((3, 2)))
+    assert np.allclose(yaw, yaws)
 
 
 def test_a_state_layout_that_is_not_the_nuts_is_refused():
