@@ -48,7 +48,8 @@ from firp.metrics import balanced_accuracy, choose_threshold
 #: bin edges (metres) of the smallest finger clearance
 BINS = (-np.inf, -0.01, -0.005, 0.0, 0.005, 0.01, 0.02, np.inf)
 #: the inputs the learners read, and the learners
-INPUTS = ("description", "clearance", "clearance_and_heights", "description_and_clearance")
+INPUTS = ("description", "clearance", "clearance_and_heights", "sized_clearance_and_heights",
+          "true_sized_clearance_and_heights", "description_and_clearance")
 LEARNERS = ("gradient_boosting", "mlp")
 #: the learning curves drawn unless --curves says otherwise: the two best learners on 800 episodes
 DEFAULT_CURVES = ("description_and_clearance:gradient_boosting", "clearance:mlp")
@@ -78,6 +79,33 @@ def clearance_and_heights(actions: np.ndarray, max_picks: int) -> np.ndarray:
 
     return plan_geometry(torch.as_tensor(actions, dtype=torch.float64), None, max_picks,
                          description="clearance_and_heights").numpy()
+
+
+def sized_clearance_and_heights(actions: np.ndarray, max_picks: int, halves: np.ndarray | None = None) -> np.ndarray:
+    """``(N, T, 16)`` plans -> the clearance to blocks of the sizes the plan shows and the heights ``(N, 9 P)``,
+    the product's ``--plan-description sized_clearance_and_heights``; with ``halves`` ``(N, 1 + P)`` (the base's
+    and each pick's block's true half-size) the clearance to blocks of those sizes instead."""
+    import torch
+
+    from firp.model.plan_geometry import plan_geometry
+
+    true = None if halves is None else torch.as_tensor(halves, dtype=torch.float64)
+    return plan_geometry(torch.as_tensor(actions, dtype=torch.float64), None, max_picks,
+                         description="sized_clearance_and_heights", halves=true).numpy()
+
+
+def true_halves(ds: EpisodeDataset, names: list[str], max_picks: int) -> np.ndarray | None:
+    """Each episode's blocks' half-sizes in the order the plan moves them ``(N, 1 + P)`` -- the tower's base
+    first -- from the recorded block order and the scene's cube sizes (robosuite's stacking records both);
+    None for a dataset that does not record them."""
+    rows = []
+    for name in names:
+        attrs = ds.demo_attrs(name)
+        if "block_order" not in attrs or "cube_half" not in attrs.get("scene", {}):
+            return None
+        sizes = [float(attrs["scene"]["cube_half"][block]) for block in attrs["block_order"]][:1 + max_picks]
+        rows.append(sizes + [0.0] * (1 + max_picks - len(sizes)))
+    return np.asarray(rows)
 
 
 def by_bins(finger: np.ndarray, labels: np.ndarray) -> list[dict]:
@@ -245,10 +273,17 @@ def main(argv: list[str] | None = None) -> int:
         names = ds.demo_names[:args.first]
         labels = ds.success_labels().astype(bool)[:len(names)]
         actions = np.stack([ds.actions(name) for name in names])  # (N, T, 16)
+        halves = true_halves(ds, names, args.max_picks)
     description, clearance, finger = describe(actions, args.max_picks)
     features = {"description": description, "clearance": clearance,
                 "clearance_and_heights": clearance_and_heights(actions, args.max_picks),
+                "sized_clearance_and_heights": sized_clearance_and_heights(actions, args.max_picks),
                 "description_and_clearance": np.hstack([description, clearance])}
+    if halves is not None:  # the yardstick: every block's size known, the last one's too
+        features["true_sized_clearance_and_heights"] = sized_clearance_and_heights(actions, args.max_picks, halves)
+    elif any(name == "true_sized_clearance_and_heights" for name, _ in args.curves):
+        parser.error(f"--curves: {args.data} records no block order and cube sizes, so it has no "
+                     "true_sized_clearance_and_heights")
     rows, sizes = [], {}
     for repeat in range(args.repeats):
         train, valid, test = split_indices(labels.astype(int), repeat)

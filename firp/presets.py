@@ -36,7 +36,7 @@ class Preset:
     def with_overrides(self, **overrides: Any) -> TrainConfig:
         """The preset's training config with fields replaced; model fields are given by their flag names:
         ``image_size``, ``action_chunk``, ``deter_dim``, ``hidden``, ``head_temperature``, ``plan_geometry``,
-        ``plan_description``, ``overshooting`` and ``prediction`` (loss weights). ``None`` values leave the preset's."""
+        ``plan_description``, ``description_layers``, ``overshooting`` and ``prediction`` (loss weights). ``None`` values leave the preset's."""
         given = {k: v for k, v in overrides.items() if v is not None}
         model = self.train.model
         if "image_size" in given:
@@ -48,7 +48,8 @@ class Preset:
             model = replace(model, rssm=replace(model.rssm, **rssm))
         if "head_temperature" in given:
             model = replace(model, head=replace(model.head, temperature=given.pop("head_temperature")))
-        geometry = {k: given.pop(f) for k, f in (("enabled", "plan_geometry"), ("description", "plan_description"))
+        geometry = {k: given.pop(f) for k, f in (("enabled", "plan_geometry"), ("description", "plan_description"),
+                                                  ("layers", "description_layers"))
                     if f in given}
         if geometry:
             model = replace(model, geometry=replace(model.geometry, **geometry))

@@ -123,8 +123,8 @@ class HeadConfig:
 
 #: What a plan's description (:mod:`firp.model.plan_geometry`) holds: the numbers in each grasp's frame, the
 #: hand's clearance to the other blocks, that clearance with each pick's grasp and release heights, or the
-#: grasp-frame numbers and the clearance.
-PLAN_DESCRIPTIONS = ("grasp_frame", "clearance", "clearance_and_heights", "both")
+#: grasp-frame numbers and the clearance; or the clearance to blocks of the sizes the plan shows, with the heights.
+PLAN_DESCRIPTIONS = ("grasp_frame", "clearance", "clearance_and_heights", "sized_clearance_and_heights", "both")
 
 
 @dataclass(frozen=True)
@@ -140,8 +140,13 @@ class GeometryConfig:
     shipped bundles read), ``clearance`` (how near the hand's fingertip pads, fingers and body come to
     the nearest other block at each grasp and release, assuming square blocks of half-size
     ``object_half``: 6 numbers per pick), ``clearance_and_heights`` (those 6 and the heights at which the
-    pick's grasp closes and its release opens, and the release's rise over the first release: 9 per pick)
-    or ``both`` (the grasp-frame numbers and the clearance).
+    pick's grasp closes and its release opens, and the release's rise over the first release: 9 per pick),
+    ``sized_clearance_and_heights`` (the same 9, the clearance measured to blocks of the sizes the plan's
+    tower heights show, ``object_half`` for a block it does not show) or ``both`` (the grasp-frame numbers
+    and the clearance). ``layers``: how many hidden layers (``hidden`` wide) FIRP's and the GRU's success
+    heads read it through -- 2 as shipped; 1 reads it as a single ReLU layer, which on robosuite's stacking
+    generalises better from ~1300 training plans (scikit-learn's MLP on the same 27 numbers: 0.89 with one
+    hidden layer, 0.86-0.87 with two).
     """
 
     enabled: bool = False
@@ -149,12 +154,16 @@ class GeometryConfig:
     hidden: int = 64
     description: str = "grasp_frame"
     object_half: float = 0.02
+    layers: int = 2
 
     def __post_init__(self) -> None:
         _positive("max_picks", self.max_picks)
         _positive("hidden", self.hidden)
         if self.description not in PLAN_DESCRIPTIONS:
             raise ValueError(f"--plan-description: {self.description!r} is none of {', '.join(PLAN_DESCRIPTIONS)}")
+        if self.layers not in (1, 2):
+            raise ValueError(f"--description-layers: the heads read the description through 1 or 2 hidden layers, "
+                             f"got {self.layers}")
         if not self.object_half > 0:
             raise ValueError(f"object_half must be > 0 (a block's half-size in metres), got {self.object_half}")
 

@@ -9,7 +9,8 @@ The weights sum to 1 over t for every sequence; the service shows them to point 
 a failure becomes evident, which is why the head returns them.
 
 With ``context_dim > 0`` the head also reads a per-sequence context vector (the plan's grasp-frame
-description, :mod:`firp.model.plan_geometry`) through a two-layer MLP, concatenated to ``pooled``
+description, :mod:`firp.model.plan_geometry`) through a two-layer MLP (or one ReLU layer,
+``GeometryConfig.layers``), concatenated to ``pooled``
 before the linear score; off (0) it is exactly the paper's head.
 
 About the temperature ``L``: the paper writes ``e^{cos / L}`` with ``L = 20``. As ``cos`` lies in
@@ -36,20 +37,27 @@ __all__ = ["SuccessHead"]
 class SuccessHead(nn.Module):
     """Attention-pooled success classifier over a sequence of features ``(B, T, E)``."""
 
-    def __init__(self, cfg: HeadConfig, feature_dim: int, context_dim: int = 0, context_hidden: int = 64):
+    def __init__(self, cfg: HeadConfig, feature_dim: int, context_dim: int = 0, context_hidden: int = 64,
+                 context_layers: int = 2):
         super().__init__()
         self.cfg = cfg
         self.q = mlp2(feature_dim, cfg.hidden, cfg.q_dim)
         self.prototypes = nn.Parameter(torch.randn(cfg.n_prototypes, cfg.q_dim))  # phi_i (M, Q)
         # optional per-sequence context (the plan's grasp-frame description), read beside the pooled q
-        self.context = mlp2(context_dim, context_hidden, context_hidden) if context_dim else None
+        # (``context_layers`` 1: one linear layer; the ReLU in forward makes it one hidden layer)
+        if not context_dim:
+            self.context = None
+        elif context_layers == 1:
+            self.context = nn.Linear(context_dim, context_hidden)
+        else:
+            self.context = mlp2(context_dim, context_hidden, context_hidden)
         self.out = nn.Linear(cfg.q_dim + (context_hidden if context_dim else 0), 1)
 
     @classmethod
     def with_geometry(cls, cfg: FIRPConfig, feature_dim: int, geometry: PlanGeometry | None) -> SuccessHead:
         """The head of a model that owns ``geometry`` (or None): its context is the plan's description."""
         return cls(cfg.head, feature_dim, context_dim=geometry.dim if geometry is not None else 0,
-                   context_hidden=cfg.geometry.hidden)
+                   context_hidden=cfg.geometry.hidden, context_layers=cfg.geometry.layers)
 
     def attention(self, q: Tensor, mask: Tensor | None = None) -> Tensor:
         """Eq. (5): ``q`` (B, T, Q) -> ``w`` (B, T), rows sum to 1 over the valid steps."""

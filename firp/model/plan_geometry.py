@@ -52,6 +52,13 @@ boosting on the 150 grasp-frame numbers and the clearance draws nearly all it us
 from these few columns, and a small MLP given the clearance and the heights alone comes within 0.01 of
 it, where given all 168 columns it loses 0.07 (``experiments/grasp_clearance.py``).
 
+``description="sized_clearance_and_heights"`` holds the same 27 numbers, with the clearance measured to
+blocks of the sizes the plan shows (:func:`block_halves`) instead of one ``object_half`` for all: robosuite's
+three-cube stacking has a 5 cm cube beside two 4 cm ones, and a neighbour 5 mm wider on each side than
+assumed is the margin that decides there. The plan shows the tower's blocks (each release's height over its
+grasp is the tower's height under it), not the last block stacked; with the true sizes of all three, a
+64-unit MLP comes to 0.90 where the one-size clearance gives it 0.88 (``experiments/grasp_clearance.py``).
+
 Missing picks (a shorter plan) are zeros with a presence flag, so one width serves any plan.
 """
 
@@ -70,9 +77,10 @@ __all__ = [
     "CLEARANCE_FAR",
     "DEFAULT_MAX_PICKS",
     "HAND_PARTS",
-    "PICK_HEIGHTS",
     "PANDA_DH",
+    "PICK_HEIGHTS",
     "PlanGeometry",
+    "block_halves",
     "build_plan_geometry",
     "clearance_dim",
     "geometry_dim",
@@ -277,16 +285,19 @@ def _signed_distance(p: Tensor, q: Tensor) -> Tensor:
     return torch.where(largest_gap > 0, apart, largest_gap)
 
 
-def hand_clearance(neighbours: Tensor, neighbour_yaw: Tensor, finger_offset: Tensor, object_half: float) -> Tensor:
+def hand_clearance(neighbours: Tensor, neighbour_yaw: Tensor, finger_offset: Tensor, object_half: float | Tensor
+                   ) -> Tensor:
     """Clearance of the Franka hand's parts to square blocks, in the hand's frame (TCP at the origin, fingers
     closing along x).
 
     ``neighbours`` (B, N, 2) block centres and ``neighbour_yaw`` (B, N) their turn relative to the hand;
-    ``finger_offset`` (B,) how far each finger's inner face stands from the TCP. Returns (B, N, 3): the signed
+    ``finger_offset`` (B,) how far each finger's inner face stands from the TCP; ``object_half`` the blocks'
+    half-size, one for all or (B, N) one per block. Returns (B, N, 3): the signed
     floor-plane distance of the fingertip pads, the fingers (the nearer of the two each) and the hand's lowest
     slab to each block, clipped to :data:`CLEARANCE_FAR`."""
     B, N = neighbour_yaw.shape
-    squares = _corners(neighbours, neighbours.new_full((B, N, 2), object_half), neighbour_yaw)  # (B, N, 4, 2)
+    half = torch.as_tensor(object_half, dtype=neighbours.dtype, device=neighbours.device).expand(B, N)
+    squares = _corners(neighbours, half.unsqueeze(-1).expand(B, N, 2), neighbour_yaw)  # (B, N, 4, 2)
     zero = neighbours.new_zeros(B)
     parts = []
     for depth, half_width in (FINGER_PAD, FINGER_BODY):
@@ -315,7 +326,7 @@ def geometry_dim(max_picks: int = DEFAULT_MAX_PICKS, description: str = "grasp_f
     per_pick = 1 + 3 + 3 + 1 + 8 * (P - 1) + 8 * P + 2  # presence, grasp xyz, release xyz, rise, grasps, releases, tower
     grasp_frame = P * per_pick if description in ("grasp_frame", "both") else 0
     clearance = clearance_dim(P) if description != "grasp_frame" else 0
-    heights = P * len(PICK_HEIGHTS) if description == "clearance_and_heights" else 0
+    heights = P * len(PICK_HEIGHTS) if description in ("clearance_and_heights", "sized_clearance_and_heights") else 0
     return grasp_frame + clearance + heights
 
 
@@ -324,12 +335,33 @@ def _check_description(description: str) -> None:
         raise ValueError(f"description: {description!r} is none of {', '.join(PLAN_DESCRIPTIONS)}")
 
 
-def _pick_clearances(ev: dict[str, Tensor], k: int, object_half: float) -> Tensor:
+def block_halves(ev: dict[str, Tensor], object_half: float) -> Tensor:
+    """Each block's half-size as the plan shows it (B, 1 + P): the tower's base, then each pick's block.
+
+    The hand holds a block at the same height above the block's bottom when it grasps it (on the table)
+    and when it releases it (on the tower), so ``release z - grasp z`` of pick ``k`` is the tower's height
+    under it (plus the planner's release gap): the base's full height at the first release, and each
+    picked block's height in the step from one release to the next. The last block's size is not shown
+    (nothing is put on it): ``object_half``, as for absent picks. The base reads high by half the release
+    gap (2.5 mm for robosuite's planner); the others' gaps cancel. Clamped to [5 mm, :data:`CLEARANCE_FAR`]
+    against plans that release below where they grasp."""
+    present = ev["present"]  # (B, P)
+    tower = ev["release_pos"][..., 2] - ev["grasp_pos"][..., 2]  # (B, P)
+    default = torch.full_like(tower[:, 0], object_half)
+    base = torch.where(present[:, 0], tower[:, 0] / 2, default)
+    steps = (tower[:, 1:] - tower[:, :-1]) / 2  # (B, P-1): pick k's block, seen under pick k+1's release
+    picked = torch.where(present[:, :-1] & present[:, 1:], steps, default.unsqueeze(-1))
+    halves = torch.cat([base.unsqueeze(-1), picked, default.unsqueeze(-1)], dim=-1)  # (B, 1 + P)
+    return halves.clamp(0.005, CLEARANCE_FAR)
+
+
+def _pick_clearances(ev: dict[str, Tensor], k: int, halves: Tensor) -> Tensor:
     """Pick ``k``'s clearances (B, 6): each hand part's nearest block at its grasp (the tower, under the first
     release point, and the blocks still on the table) and at its release (the blocks still on the table);
-    :data:`CLEARANCE_FAR` where there is none."""
+    :data:`CLEARANCE_FAR` where there is none. ``halves`` (B, 1 + P): the base's and each pick's block's
+    half-size (the tower's footprint: the largest block in it so far)."""
     present = ev["present"]
-    B, P = present.shape
+    P = present.shape[1]
     order = torch.arange(P, device=present.device)
     others = order[order != k]
     later = (others > k).unsqueeze(0) & present[:, others]  # (B, P-1): still on the table at pick k
@@ -337,13 +369,15 @@ def _pick_clearances(ev: dict[str, Tensor], k: int, object_half: float) -> Tenso
     spots = torch.cat([ev["release_pos"][:, :1], ev["grasp_pos"][:, others]], dim=1)  # (B, P, 3)
     yaws = torch.cat([ev["release_yaw"][:, :1], ev["grasp_yaw"][:, others]], dim=1)  # (B, P)
     there = torch.cat([present[:, :1], later], dim=1)
+    picked = halves[:, 1:]  # (B, P)
+    tower = halves[:, : k + 1].max(dim=1).values  # the base and the blocks released on it before pick k
     at_grasp = hand_clearance(_in_frame(gpos, gyaw, spots), yaws - gyaw.unsqueeze(-1), ev["grasp_open"][:, k],
-                              object_half)  # (B, P, 3)
+                              torch.cat([tower.unsqueeze(-1), picked[:, others]], dim=1))  # (B, P, 3)
     at_grasp = torch.where(there.unsqueeze(-1), at_grasp, torch.full_like(at_grasp, CLEARANCE_FAR))
     rpos, ryaw = ev["release_pos"][:, k], ev["release_yaw"][:, k]
     at_release = hand_clearance(_in_frame(rpos, ryaw, ev["grasp_pos"][:, others]),
                                 ev["grasp_yaw"][:, others] - ryaw.unsqueeze(-1),
-                                rpos.new_full((B,), object_half), object_half)  # (B, P-1, 3)
+                                picked[:, k], picked[:, others])  # (B, P-1, 3): fingers closed on the block
     at_release = torch.where(later.unsqueeze(-1), at_release, torch.full_like(at_release, CLEARANCE_FAR))
     return torch.cat([at_grasp.min(dim=1).values, at_release.min(dim=1).values], dim=-1)
 
@@ -379,16 +413,30 @@ def _grasp_frame_rows(ev: dict[str, Tensor], dtype: torch.dtype) -> list[Tensor]
 
 
 def plan_geometry(actions: Tensor, mask: Tensor | None = None, max_picks: int = DEFAULT_MAX_PICKS,
-                  description: str = "grasp_frame", object_half: float = DEFAULT_OBJECT_HALF) -> Tensor:
+                  description: str = "grasp_frame", object_half: float = DEFAULT_OBJECT_HALF,
+                  halves: Tensor | None = None) -> Tensor:
     """Raw plan ``(B, T, 16)`` -> its description ``(B, geometry_dim(max_picks, description))``: the grasp-frame
-    numbers, the hand's clearance, or both (see the module docstring)."""
+    numbers, the hand's clearance, or both (see the module docstring).
+
+    ``halves`` (B, 1 + P), only with ``sized_clearance_and_heights``: the blocks' true half-sizes in
+    :func:`block_halves`' layout instead of the ones the plan shows -- an experiment's yardstick (what
+    knowing every block's size would give), not something a scorer is handed."""
     _check_description(description)
+    if halves is not None and (description != "sized_clearance_and_heights"
+                               or tuple(halves.shape) != (actions.shape[0], 1 + max_picks)):
+        raise ValueError(f"halves: only with sized_clearance_and_heights, shaped (B, 1 + max_picks) = "
+                         f"({actions.shape[0]}, {1 + max_picks}); got {description!r}, {tuple(halves.shape)}")
     ev = pick_events(actions, mask, max_picks)
     rows = _grasp_frame_rows(ev, actions.dtype) if description in ("grasp_frame", "both") else []
     if description != "grasp_frame":
         present = ev["present"].to(actions.dtype)
-        rows += [_pick_clearances(ev, k, object_half) * present[:, k : k + 1] for k in range(max_picks)]
-    if description == "clearance_and_heights":
+        if description == "sized_clearance_and_heights":
+            halves = block_halves(ev, object_half) if halves is None else halves.to(actions.dtype)
+        else:
+            halves = torch.full((actions.shape[0], 1 + max_picks), object_half, dtype=actions.dtype,
+                                device=actions.device)
+        rows += [_pick_clearances(ev, k, halves) * present[:, k : k + 1] for k in range(max_picks)]
+    if description in ("clearance_and_heights", "sized_clearance_and_heights"):
         rows += [_pick_heights(ev, k) * ev["present"][:, k : k + 1].to(actions.dtype) for k in range(max_picks)]
     return torch.cat(rows, dim=-1)  # (B, G)
 

@@ -125,6 +125,8 @@ class FusedFIRP:
         described = [m.geometry for m in models if m.geometry is not None]
         if len({(g.max_picks, g.description, g.object_half) for g in described}) > 1:
             raise TypeError("fused members must describe the plan alike (max_picks, description, object_half)")
+        if len({isinstance(m.head.context, nn.Linear) for m in models if m.head.context is not None}) > 1:
+            raise TypeError("fused members must read the description through as many layers (1 or 2)")
         rssm_cfg = m0.rssm.cfg
         self.members = list(models)
         self.chunk = m0.cfg.action_chunk
@@ -176,10 +178,13 @@ class FusedFIRP:
             if self.describe is not None:
                 self.g_mean = torch.stack([m.geometry.mean for m in models])[:, None, :]  # (M, 1, G)
                 self.g_std = torch.stack([m.geometry.std for m in models])[:, None, :]
-                c1 = [_linear_parts(m.head.context)[0] for m in models]
-                c2 = [_linear_parts(m.head.context)[1] for m in models]
+                one_layer = isinstance(m0.head.context, nn.Linear)  # GeometryConfig.layers == 1
+                c1 = [m.head.context if one_layer else _linear_parts(m.head.context)[0] for m in models]
                 self.w_c1, self.b_c1 = _stack_t([l.weight for l in c1]), _stack_b([l.bias for l in c1])
-                self.w_c2, self.b_c2 = _stack_t([l.weight for l in c2]), _stack_b([l.bias for l in c2])
+                self.w_c2 = self.b_c2 = None
+                if not one_layer:
+                    c2 = [_linear_parts(m.head.context)[1] for m in models]
+                    self.w_c2, self.b_c2 = _stack_t([l.weight for l in c2]), _stack_b([l.bias for l in c2])
         self._lock = threading.Lock()
         self._scenes: list[tuple[Tensor, Tensor, Tensor]] = []  # (features, e_1, ge), most recent last
 
@@ -233,7 +238,9 @@ class FusedFIRP:
         pooled = torch.einsum("mnt,mntq->mnq", w, q)
         if self.describe is not None:  # the description is computed once for every member
             z = standardise(self.describe(actions).unsqueeze(0), self.g_mean, self.g_std)  # (M, N, G)
-            c = torch.baddbmm(self.b_c2, torch.relu(torch.baddbmm(self.b_c1, z, self.w_c1)), self.w_c2)
+            c = torch.baddbmm(self.b_c1, z, self.w_c1)  # (M, N, Hc)
+            if self.w_c2 is not None:
+                c = torch.baddbmm(self.b_c2, torch.relu(c), self.w_c2)
             pooled = torch.cat([pooled, torch.relu(c)], dim=-1)  # (M, N, Q + Hc)
         logits = torch.baddbmm(self.b_out, pooled, self.w_out).squeeze(-1)  # (M, N)
         return logits, spread_chunk_weights(w.reshape(M * N, Tc), T, k).view(M, N, T)

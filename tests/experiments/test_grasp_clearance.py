@@ -7,7 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from experiments.grasp_clearance import by_bins, clearance_and_heights, describe, main
+from experiments.grasp_clearance import (by_bins, clearance_and_heights, describe, main, sized_clearance_and_heights,
+                                         true_halves)
 from firp.core.episodes import EpisodeDataset
 
 
@@ -30,14 +31,20 @@ def test_the_analysis_reads_a_recorded_dataset(tiny_dataset, tmp_path):
     for key in ("finger_clearance_rule", "description_gradient_boosting", "clearance_gradient_boosting",
                 "description_and_clearance_gradient_boosting", "clearance_mlp", "description_mlp",
                 "clearance_and_heights_mlp", "clearance_and_heights_gradient_boosting",
+                "sized_clearance_and_heights_mlp", "sized_clearance_and_heights_gradient_boosting",
                 "description_and_clearance_gradient_boosting@0.5", "clearance_mlp@0.5"):
         assert 0.0 <= result["mean_std"][key][0] <= 1.0
     shares = [result["rows"][0][f"gradient_boosting_importance_{part}"] for part in ("clearance", "heights",
                                                                                    "other_grasp_frame")]
     assert all(0.0 <= share <= 1.0 for share in shares) and sum(shares) == pytest.approx(1.0)
     assert picture.stat().st_size > 10_000
+    # our world's records hold no cube sizes: no yardstick with the true sizes
+    assert "true_sized_clearance_and_heights_mlp" not in result["mean_std"]
     with EpisodeDataset(tiny_dataset) as ds:
         actions = np.stack([ds.actions(name) for name in ds.demo_names])
+        assert true_halves(ds, ds.demo_names, 3) is None
+    sized = sized_clearance_and_heights(actions, 3)
+    assert sized.shape == (20, 27) and np.array_equal(sized[:, 18:], clearance_and_heights(actions, 3)[:, 18:])
     description, clearance, finger = describe(actions, 3)
     assert clearance.shape == (20, 18)
     with_heights = clearance_and_heights(actions, 3)
@@ -90,6 +97,31 @@ def test_first_reads_the_first_episodes_only(tiny_dataset, tmp_path):
     assert [b["plans"] for b in result["bins"]] and result["training_episodes"] + result["validation_episodes"] < 16
     rate = sum(b["plans"] * b["success_rate"] for b in result["bins"] if b["plans"]) / 16
     assert rate == pytest.approx(labels.mean())
+
+
+class _RecordedStacking:
+    """What robosuite's stacking records per episode: the block order (the tower's base first) and the scene."""
+
+    def demo_attrs(self, name):
+        orders = {"a": ["cubeC", "cubeB", "cubeA"], "b": ["cubeB", "cubeA", "cubeC"]}
+        return {"block_order": orders[name], "scene": {"cube_half": {"cubeA": 0.02, "cubeB": 0.025, "cubeC": 0.02}}}
+
+
+def test_true_halves_follow_each_episodes_block_order_and_feed_the_yardstick(tiny_dataset):
+    halves = true_halves(_RecordedStacking(), ["a", "b"], 3)
+    np.testing.assert_array_equal(halves, [[0.02, 0.025, 0.02, 0.0], [0.025, 0.02, 0.02, 0.0]])
+    with EpisodeDataset(tiny_dataset) as ds:
+        actions = np.stack([ds.actions(name) for name in ds.demo_names[:2]])
+    sized = sized_clearance_and_heights(actions, 3, halves)
+    assert sized.shape == (2, 27) and not np.array_equal(sized, sized_clearance_and_heights(actions, 3))
+
+
+def test_the_true_sizes_yardstick_needs_recorded_sizes(tiny_dataset, tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["--data", str(tiny_dataset), "--out", str(tmp_path / "x.json"), "--curves",
+              "true_sized_clearance_and_heights:mlp"])
+    err = capsys.readouterr().err
+    assert "--curves" in err and "records no block order and cube sizes" in err
 
 
 def test_a_missing_dataset_names_the_flag(tmp_path, capsys):

@@ -362,3 +362,71 @@ def test_plan_description_config_flags_and_models(capsys):
     config, overrides = recipe_from(parser.parse_args(["--data", "x", "--plan-description", "clearance_and_heights"]))
     assert config.model.geometry.description == "clearance_and_heights"
     assert build_model("gru", config.model).geometry.dim == geometry_dim(description="clearance_and_heights") == 27
+
+
+def test_block_halves_read_the_tower_under_each_release(planned):
+    from firp.model.plan_geometry import block_halves
+
+    a = _actions(planned["stacking"])
+    ev = pick_events(a)
+    halves = block_halves(ev, 0.02)  # (B, 1 + P): the base, then each pick's block
+    assert halves.shape == (3, 4)
+    tower = ev["release_pos"][:, :2, 2] - ev["grasp_pos"][:, :2, 2]  # the tower's height under each release
+    torch.testing.assert_close(halves[:, 0], tower[:, 0] / 2)
+    torch.testing.assert_close(halves[:, 1], (tower[:, 1] - tower[:, 0]) / 2)
+    # the sim's blocks: 4 cm cubes (the release gap adds its half to the base; the next step cancels it)
+    assert torch.all((halves[:, 0] > 0.019) & (halves[:, 0] < 0.03))
+    torch.testing.assert_close(halves[:, 1], torch.full((3,), 0.02, dtype=torch.float64), atol=3e-3, rtol=0)
+    # the last block stacked (nothing goes on it) and the absent third pick: the assumed size
+    assert torch.all(halves[:, 2:] == 0.02)
+
+
+def test_sized_clearance_is_the_clearance_to_blocks_of_those_sizes(planned):
+    a = _actions(planned["stacking"])
+    one_size = plan_geometry(a, description="clearance_and_heights")
+    sized = plan_geometry(a, description="sized_clearance_and_heights")
+    assert sized.shape == one_size.shape == (3, geometry_dim(description="sized_clearance_and_heights")) == (3, 27)
+    assert torch.equal(sized[:, 18:], one_size[:, 18:])  # the heights are the same numbers
+    # given every block the assumed size, the sized clearance is the one-size clearance exactly
+    same = torch.full((3, 4), 0.02, dtype=torch.float64)
+    assert torch.equal(plan_geometry(a, description="sized_clearance_and_heights", halves=same), one_size)
+    # a wider tower base and a wider block left on the table come nearer the hand: no clearance grows, and the
+    # second pick's grasp (beside the tower) comes 5 mm nearer wherever the tower is the nearest block in reach
+    wider = same.clone()
+    wider[:, 0] = 0.025
+    wider[:, 2] = 0.025
+    near = plan_geometry(a, description="sized_clearance_and_heights", halves=wider)
+    assert torch.all(near[:, :18] <= one_size[:, :18] + 1e-12)
+    assert torch.any(near[:, 6:9] < one_size[:, 6:9] - 1e-3)
+    with pytest.raises(ValueError, match="halves: only with sized_clearance_and_heights"):
+        plan_geometry(a, description="clearance_and_heights", halves=same)
+    with pytest.raises(ValueError, match=r"halves: .*\(3, 4\)"):
+        plan_geometry(a, description="sized_clearance_and_heights", halves=same[:, :3])
+
+
+def test_sized_clearance_flag_builds_models_of_its_width():
+    import argparse
+
+    from firp.flags import add_model_flags, add_training_flags, recipe_from
+
+    parser = argparse.ArgumentParser()
+    add_training_flags(parser)
+    add_model_flags(parser)
+    config, _ = recipe_from(parser.parse_args(["--data", "x", "--plan-description", "sized_clearance_and_heights"]))
+    assert config.model.geometry.enabled and config.model.geometry.description == "sized_clearance_and_heights"
+    model = build_model("firp", config.model)
+    assert model.geometry.dim == 27
+    plans = torch.zeros(2, 16, 16)
+    assert model.geometry(plans).shape == (2, 27)
+    assert type(model.head.context).__name__ == "Sequential"  # two layers, as shipped
+    config, overrides = recipe_from(parser.parse_args(["--data", "x", "--plan-description", "sized_clearance_and_heights",
+                                                       "--description-layers", "1"]))
+    assert overrides == {"plan_description": "sized_clearance_and_heights", "description_layers": 1}
+    for kind in ("firp", "gru"):  # both read it through their success head: one ReLU layer
+        head = build_model(kind, config.model).head
+        assert isinstance(head.context, torch.nn.Linear) and head.context.in_features == 27
+    assert FIRPConfig.from_dict(config.model.to_dict()) == config.model
+    with pytest.raises(ValueError, match="--description-layers: the heads read the description through 1 or 2"):
+        GeometryConfig(enabled=True, layers=3)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--data", "x", "--description-layers", "3"])

@@ -76,6 +76,25 @@ def test_fused_members_reading_the_hands_clearance_equal_the_loop(tmp_path):
         FusedFIRP(models)
 
 
+def test_fused_members_reading_the_description_through_one_layer_equal_the_loop(tmp_path):
+    """--description-layers 1 (the sized clearance read through one ReLU layer) fuses like two layers."""
+    geometry = dataclasses.replace(SHIPPED_LIKE.geometry, description="sized_clearance_and_heights", layers=1)
+    base = dataclasses.replace(SHIPPED_LIKE, geometry=geometry)
+    bundle = _firp_bundle(tmp_path, 4, base=base, fit_plans=valid_plans(8, 16, seed=99))
+    assert all(isinstance(m.head.context, torch.nn.Linear) for m in bundle.models)
+    fused, loop = EnsembleScorer(bundle, strategy="fused"), EnsembleScorer(bundle, strategy="loop")
+    assert fused.uses_fused
+    image, plans = random_image(seed=4), valid_plans(3, 16, seed=6)
+    a, b = fused.score(image, plans), loop.score(image, plans)
+    np.testing.assert_allclose(a.member_probabilities, b.member_probabilities, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(a.weights, b.weights, atol=1e-5, rtol=0)
+    from firp.serving.fused import FusedFIRP
+
+    two = dataclasses.replace(base, geometry=dataclasses.replace(geometry, layers=2))
+    with pytest.raises(TypeError, match="as many layers"):
+        FusedFIRP([*bundle.models, build_model("firp", dataclasses.replace(two, action_chunk=4)).eval()])
+
+
 def test_fused_plans_shorter_than_one_chunk(tmp_path):
     """T <= k: one transition, no prior steps; the head reads e_1 alone (weights all on step 0)."""
     cfg = dataclasses.replace(TINY, action_chunk=8)
