@@ -274,6 +274,9 @@ def main(argv: list[str] | None = None) -> int:
         labels = ds.success_labels().astype(bool)[:len(names)]
         actions = np.stack([ds.actions(name) for name in names])  # (N, T, 16)
         halves = true_halves(ds, names, args.max_picks)
+    if halves is None and any(name == "true_sized_clearance_and_heights" for name, _ in args.curves):
+        parser.error(f"--curves: {args.data} records no block order and cube sizes, so it has no "
+                     "true_sized_clearance_and_heights")
     description, clearance, finger = describe(actions, args.max_picks)
     features = {"description": description, "clearance": clearance,
                 "clearance_and_heights": clearance_and_heights(actions, args.max_picks),
@@ -281,9 +284,6 @@ def main(argv: list[str] | None = None) -> int:
                 "description_and_clearance": np.hstack([description, clearance])}
     if halves is not None:  # the yardstick: every block's size known, the last one's too
         features["true_sized_clearance_and_heights"] = sized_clearance_and_heights(actions, args.max_picks, halves)
-    elif any(name == "true_sized_clearance_and_heights" for name, _ in args.curves):
-        parser.error(f"--curves: {args.data} records no block order and cube sizes, so it has no "
-                     "true_sized_clearance_and_heights")
     rows, sizes = [], {}
     for repeat in range(args.repeats):
         train, valid, test = split_indices(labels.astype(int), repeat)

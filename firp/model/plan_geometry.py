@@ -118,6 +118,8 @@ HAND_PARTS = ("pad", "finger", "hand")
 #: ``description="clearance_and_heights"``'s numbers per pick beside the clearance: the grasp's and the
 #: release's TCP height and the release's rise over the first release (how high on the tower it goes).
 PICK_HEIGHTS = ("grasp_z", "release_z", "rise")
+#: The descriptions that hold each pick's heights (:data:`PICK_HEIGHTS`) beside the clearance.
+WITH_HEIGHTS = ("clearance_and_heights", "sized_clearance_and_heights")
 #: Clearances are clipped to this many metres: an absent block, or one farther away, reads as far.
 CLEARANCE_FAR = 0.1
 #: Half-size of the square the clearance assumes at a neighbour (the tasks' cubes: 0.02-0.025 m).
@@ -326,7 +328,7 @@ def geometry_dim(max_picks: int = DEFAULT_MAX_PICKS, description: str = "grasp_f
     per_pick = 1 + 3 + 3 + 1 + 8 * (P - 1) + 8 * P + 2  # presence, grasp xyz, release xyz, rise, grasps, releases, tower
     grasp_frame = P * per_pick if description in ("grasp_frame", "both") else 0
     clearance = clearance_dim(P) if description != "grasp_frame" else 0
-    heights = P * len(PICK_HEIGHTS) if description in ("clearance_and_heights", "sized_clearance_and_heights") else 0
+    heights = P * len(PICK_HEIGHTS) if description in WITH_HEIGHTS else 0
     return grasp_frame + clearance + heights
 
 
@@ -436,7 +438,7 @@ def plan_geometry(actions: Tensor, mask: Tensor | None = None, max_picks: int = 
             halves = torch.full((actions.shape[0], 1 + max_picks), object_half, dtype=actions.dtype,
                                 device=actions.device)
         rows += [_pick_clearances(ev, k, halves) * present[:, k : k + 1] for k in range(max_picks)]
-    if description in ("clearance_and_heights", "sized_clearance_and_heights"):
+    if description in WITH_HEIGHTS:
         rows += [_pick_heights(ev, k) * ev["present"][:, k : k + 1].to(actions.dtype) for k in range(max_picks)]
     return torch.cat(rows, dim=-1)  # (B, G)
 
