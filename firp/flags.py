@@ -17,7 +17,7 @@ from firp.core.cli_types import int_in_range, non_negative_float, positive_float
 #: flag destination -> the field of Preset.with_overrides it sets
 RECIPE_FLAGS = ("epochs", "patience", "min_epochs", "image_size", "action_chunk", "deter_dim", "hidden",
                 "head_temperature", "plan_geometry", "plan_description", "description_layers", "overshooting",
-                "prediction")
+                "prediction", "description_weight")
 
 
 def add_training_flags(parser: argparse.ArgumentParser) -> None:
@@ -76,6 +76,10 @@ def add_loss_flags(parser: argparse.ArgumentParser) -> None:
                    help="latent-overshooting weight")
     g.add_argument("--prediction-weight", dest="prediction", type=non_negative_float("--prediction-weight"),
                    default=None, help="weight of FIRP's one-step prediction terms L_KL^1 + L_re^1 (paper: 1)")
+    g.add_argument("--description-weight", type=non_negative_float("--description-weight"), default=None,
+                   help="weight of a classification loss on the plan description's own share of FIRP's score, so "
+                        "the description predicts by itself and the pooled sequence adds to it (product: 0, off; "
+                        "needs the plan's description)")
 
 
 def recipe_from(args: argparse.Namespace, parser: argparse.ArgumentParser | None = None) -> tuple[Any, dict[str, Any]]:

@@ -283,7 +283,7 @@ def firp_loss(out: Mapping[str, Any], actions: Tensor, labels: Tensor, cfg: Loss
     """Eq. 9 + TCR from the dict of :meth:`firp.model.firp.FIRP.forward_train`.
 
     ``total = ce_real * L_ce + ce_open_loop * L_ce(open loop) + prediction * (L_KL^1 + L_re^1)
-    + lambda * (L_KL^os + L_re^os) + alpha * R_TTC + beta * R_ATC`` where ``os`` averages the open
+    + lambda * (L_KL^os + L_re^os) + alpha * R_TTC + beta * R_ATC + description * L_ce(description)`` where ``os`` averages the open
     loop from index 0 and the sampled distances in ``out["overshoot"]``. ``L_re^1`` compares
     ``e[:, 1:]`` with the decoded one-step priors (the paper decodes from s^_t). Returns every term
     (for logging) and ``"total"``.
@@ -310,6 +310,13 @@ def firp_loss(out: Mapping[str, Any], actions: Tensor, labels: Tensor, cfg: Loss
     categories = out["categories"] if "categories" in out else plan_categories(actions)  # aligned with e
     terms["ttc"] = ttc(e, mask) if cfg.alpha > 0 else e.new_zeros(())
     terms["atc"] = atc(e, categories, mask, cfg.atc_alignment) if cfg.beta > 0 else e.new_zeros(())
+    if cfg.description > 0:
+        if "logits_description" not in out:
+            raise ValueError("LossConfig.description > 0 asks for the description's own score, and this model "
+                             "reads no plan description (enable the plan's description)")
+        terms["ce_description"] = classification_loss(out["logits_description"], labels, cfg.pos_weight)
+    else:
+        terms["ce_description"] = e.new_zeros(())
     terms["total"] = sum(w * terms[k] for k, w in loss_weights(cfg).items())
     return terms
 
@@ -317,4 +324,5 @@ def firp_loss(out: Mapping[str, Any], actions: Tensor, labels: Tensor, cfg: Loss
 def loss_weights(cfg: LossConfig) -> dict[str, float]:
     """Weight of each term of :func:`firp_loss` in ``total``."""
     return {"ce": cfg.ce_real, "ce_open_loop": cfg.ce_open_loop, "kl": cfg.prediction, "re": cfg.prediction,
-            "kl_overshoot": cfg.overshooting, "re_overshoot": cfg.overshooting, "ttc": cfg.alpha, "atc": cfg.beta}
+            "kl_overshoot": cfg.overshooting, "re_overshoot": cfg.overshooting, "ttc": cfg.alpha, "atc": cfg.beta,
+            "ce_description": cfg.description}

@@ -36,7 +36,8 @@ class Preset:
     def with_overrides(self, **overrides: Any) -> TrainConfig:
         """The preset's training config with fields replaced; model fields are given by their flag names:
         ``image_size``, ``action_chunk``, ``deter_dim``, ``hidden``, ``head_temperature``, ``plan_geometry``,
-        ``plan_description``, ``description_layers``, ``overshooting`` and ``prediction`` (loss weights). ``None`` values leave the preset's."""
+        ``plan_description``, ``description_layers``, ``overshooting``, ``prediction`` and ``description_weight``
+        (loss weights). ``None`` values leave the preset's."""
         given = {k: v for k, v in overrides.items() if v is not None}
         model = self.train.model
         if "image_size" in given:
@@ -57,6 +58,11 @@ class Preset:
                 raise ValueError("--plan-description: the recipe leaves the plan's description out "
                                  "(--no-plan-geometry); drop one of the two")
         loss = {k: given.pop(k) for k in ("overshooting", "prediction") if k in given}
+        if "description_weight" in given:
+            loss["description"] = given.pop("description_weight")
+            if loss["description"] > 0 and not model.geometry.enabled:
+                raise ValueError("--description-weight: the recipe leaves the plan's description out "
+                                 "(--no-plan-geometry); drop one of the two")
         if loss:
             model = replace(model, loss=replace(model.loss, **loss))
         return replace(self.train, model=model, **given)

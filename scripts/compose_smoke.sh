@@ -44,10 +44,23 @@ STEP="start"
 T0=$SECONDS
 step() { STEP=$1; echo ">> [$((SECONDS - T0)) s] $STEP"; }
 fail() { echo "compose smoke: FAILED at step '$STEP': $*" >&2; exit 1; }
+# The failing step's own words where CI shows them: the newest log's last lines and the free disk
+# (CI keeps only this script's output, not the logs folder).
+show_failure() {
+    local newest
+    # podman's API service writes its log all along: the newest of the others is the failing step's
+    newest=$(ls -t "$LOGS"/*.log 2>/dev/null | grep -v -e '/podman-service.log$' -e '\.first-try\.log$' | head -1) || true
+    if [ -n "$newest" ]; then
+        echo "compose smoke: last 40 lines of $newest:" >&2
+        tail -n 40 "$newest" | sed 's/^/   | /' >&2
+    fi
+    echo "compose smoke: free disk where the images live: $(df -h --output=avail "$WORK" | tail -1 | tr -d ' ')" >&2
+}
 on_exit() {
     local status=$?
     trap - EXIT
     if [ "$status" -ne 0 ]; then
+        show_failure
         echo "compose smoke: FAILED at step '$STEP' (exit $status); logs in $LOGS" >&2
     fi
     teardown
@@ -151,12 +164,26 @@ declare -A IMAGE=([service]=firp-service [sim_worker]=firp-sim-worker [planner]=
 for name in service sim_worker planner ray_head; do
     step "build $name"
     start=$SECONDS
-    "${COMPOSE[@]}" "${PROFILES[@]}" build "$name" >"$LOGS/build-$name.log" 2>&1 || fail "compose build $name (see $LOGS/build-$name.log)"
+    # one retry: a build that fails once (a registry or mirror hiccup, a full layer cache) says why and
+    # goes again; the second failure is the step's
+    if ! "${COMPOSE[@]}" "${PROFILES[@]}" build "$name" >"$LOGS/build-$name.log" 2>&1; then
+        echo "   build $name failed once; its log's last lines:"
+        tail -n 20 "$LOGS/build-$name.log" | sed 's/^/   | /'
+        echo "   free disk: $(df -h --output=avail "$WORK" | tail -1 | tr -d ' '); retrying"
+        mv "$LOGS/build-$name.log" "$LOGS/build-$name.first-try.log"
+        "${COMPOSE[@]}" "${PROFILES[@]}" build "$name" >"$LOGS/build-$name.log" 2>&1 \
+            || fail "compose build $name, twice (see $LOGS/build-$name.log)"
+    fi
     BUILD_S[$name]=$((SECONDS - start))
     image="${IMAGE[$name]}:$FIRP_IMAGE_TAG"
     bytes=$(inspect image inspect --format '{{.Size}}' "$image") || fail "no image $image after the build"
     SIZE_MB[$name]=$((bytes / 1000000))
-    echo "   $image: ${SIZE_MB[$name]} MB in ${BUILD_S[$name]} s"
+    if [ "$ENGINE" = podman ]; then
+        # the build stage's images (a venv and the wheels, ~1 GB per image) are dangling once the runtime
+        # stage has its copy; podman's storage is ours, so drop them: four builds' worth filled ~4 GB more
+        inspect image prune -f >>"$LOGS/prune.log" 2>&1 || echo "   (podman image prune failed, see $LOGS/prune.log)"
+    fi
+    echo "   $image: ${SIZE_MB[$name]} MB in ${BUILD_S[$name]} s (free disk $(df -h --output=avail "$WORK" | tail -1 | tr -d ' '))"
 done
 
 step "image contents"

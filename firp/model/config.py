@@ -211,6 +211,12 @@ class LossConfig:
     (``docs/results/stacking_split0_preliminary.md``). Dreamer-style world models stop this
     gradient for the same reason.
 
+    ``description`` (default 0: off) weights a classification loss on the description's own share of the
+    head's score (:meth:`firp.model.head.SuccessHead.description_logit`: the head's output weights on the
+    description's hidden layer alone, with its bias), so the plan's description must predict the outcome
+    by itself and the pooled sequence adds what it lacks -- beside the pooled state, fitted with it, the
+    description's part is not otherwise asked to stand on its own.
+
     ``open_loop_sample`` (default on, as the paper trains on samples) off rolls the training open loop
     on means from the posterior mean of e_1, i.e. exactly the sequence :meth:`FIRP.score` classifies.
     Measured once on stacking (trial 2 of the shipped study's config, seed 2, 40 epochs;
@@ -230,9 +236,11 @@ class LossConfig:
     atc_alignment: Literal["cause", "paper"] = "cause"
     stop_target_gradient: bool = True
     open_loop_sample: bool = True  # False: the open loop (inference's rollout) runs on means in training too
+    description: float = 0.0  # L_ce on the description's own score (needs the plan's description)
 
     def __post_init__(self) -> None:
-        for name in ("overshooting", "alpha", "beta", "ce_open_loop", "ce_real", "prediction", "free_nats"):
+        for name in ("overshooting", "alpha", "beta", "ce_open_loop", "ce_real", "prediction", "free_nats",
+                     "description"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.pos_weight is not None:

@@ -154,6 +154,8 @@ class FIRP(nn.Module):
             "logits_open_loop": logits_ol,
             "weights_open_loop": weights_ol,
             "features_open_loop": seq_ol,
+            # the description's own score (the head's logit without the pooled sequence's share)
+            **({"logits_description": self.head.description_logit(context)} if context is not None else {}),
         }
 
     def score(

@@ -67,6 +67,16 @@ class SuccessHead(nn.Module):
             logits = logits.masked_fill(~mask.bool().unsqueeze(1), float("-inf"))
         return torch.softmax(logits, dim=-1).mean(dim=1)  # softmax over t, mean over prototypes
 
+    def description_logit(self, context: Tensor) -> Tensor:
+        """The description's own score ``context`` (B, C) -> (B,): the output layer's weights on the
+        description's hidden units, and its bias -- the head's logit with the pooled sequence's share left
+        out (the head's logit is this plus ``w_q . pooled``)."""
+        if self.context is None:
+            raise ValueError("this head was built without a context input: it has no description score")
+        hidden = torch.relu(self.context(context))  # (B, Hc)
+        w = self.out.weight[:, self.cfg.q_dim:]  # (1, Hc)
+        return (hidden @ w.T).squeeze(-1) + self.out.bias  # (B,)
+
     def forward(self, features: Tensor, mask: Tensor | None = None, context: Tensor | None = None
                 ) -> tuple[Tensor, Tensor]:
         """``features`` (B, T, E), ``mask`` (B, T) bool (True = real step, at least one per row),

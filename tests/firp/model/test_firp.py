@@ -66,3 +66,44 @@ def test_image_encoder_shares_the_projection():
     assert enc.projection is model.projection
     imgs = torch.randint(0, 256, (2, 40, 40, 3), dtype=torch.uint8)
     torch.testing.assert_close(enc(imgs), model.projection(enc.backbone_features(imgs)))
+
+
+def test_description_loss_trains_the_descriptions_own_score_and_nothing_of_the_sequence():
+    """``LossConfig.description``: the head's logit is the description's own score plus the pooled
+    sequence's share, and the extra loss is the BCE of that score alone -- its gradient reaches the
+    description's layers and the output layer, never the pooled sequence's query network."""
+    from dataclasses import replace
+
+    import pytest
+
+    from firp.model.config import GeometryConfig, LossConfig
+
+    cfg = replace(TINY, geometry=GeometryConfig(enabled=True, hidden=6, description="clearance"),
+                  loss=replace(TINY.loss, description=0.5))
+    model = FIRP(cfg)
+    B, T = 4, 9
+    feats, plan, labels = torch.randn(B, T, DB), random_plan(B, T), torch.tensor([1.0, 0.0, 1.0, 0.0])
+    out = model.forward_train(feats, plan)
+    head = model.head
+    context = model.geometry(plan)
+    q = head.q(out["e"])
+    pooled = torch.einsum("bt,btq->bq", out["weights"], q)
+    sequence_share = pooled @ head.out.weight[0, :TINY.head.q_dim]
+    torch.testing.assert_close(out["logits_description"] + sequence_share, out["logits"])
+    torch.testing.assert_close(out["logits_description"], head.description_logit(context))
+
+    terms = firp_loss(out, plan, labels, cfg.loss)
+    expected = torch.nn.functional.binary_cross_entropy_with_logits(out["logits_description"], labels)
+    torch.testing.assert_close(terms["ce_description"], expected)
+    without = firp_loss(out, plan, labels, replace(cfg.loss, description=0.0))
+    torch.testing.assert_close(terms["total"] - without["total"], 0.5 * expected)
+
+    model.zero_grad()
+    terms["ce_description"].backward()
+    assert all(p.grad is None or not p.grad.any() for p in head.q.parameters())
+    assert head.context[0].weight.grad.abs().sum() > 0 and head.out.weight.grad[0, :TINY.head.q_dim].abs().sum() == 0
+
+    with pytest.raises(ValueError, match="reads no plan description"):
+        firp_loss(FIRP(TINY).forward_train(feats, plan), plan, labels, replace(TINY.loss, description=1.0))
+    with pytest.raises(ValueError, match="description must be >= 0"):
+        LossConfig(description=-1.0)

@@ -430,3 +430,25 @@ def test_sized_clearance_flag_builds_models_of_its_width():
         GeometryConfig(enabled=True, layers=3)
     with pytest.raises(SystemExit):
         parser.parse_args(["--data", "x", "--description-layers", "3"])
+
+
+def test_description_weight_flag_sets_the_loss_and_needs_the_description():
+    import argparse
+
+    from firp.flags import add_loss_flags, add_model_flags, add_training_flags, recipe_flags, recipe_from
+
+    parser = argparse.ArgumentParser()
+    add_training_flags(parser)
+    add_model_flags(parser)
+    add_loss_flags(parser)
+    config, overrides = recipe_from(parser.parse_args(["--data", "x", "--description-weight", "1"]))
+    assert config.model.loss.description == 1.0 and overrides == {"description_weight": 1.0}
+    assert recipe_flags("product", overrides) == "--preset product --description-weight 1.0"
+    assert build_model("firp", config.model).cfg.loss.description == 1.0
+    assert FIRPConfig.from_dict(config.model.to_dict()) == config.model
+    config, _ = recipe_from(parser.parse_args(["--data", "x"]))
+    assert config.model.loss.description == 0.0  # off as shipped
+    with pytest.raises(ValueError, match="--description-weight: the recipe leaves the plan's description out"):
+        recipe_from(parser.parse_args(["--data", "x", "--no-plan-geometry", "--description-weight", "1"]))
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--data", "x", "--description-weight", "-1"])
