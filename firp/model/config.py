@@ -215,7 +215,9 @@ class LossConfig:
     head's score (:meth:`firp.model.head.SuccessHead.description_logit`: the head's output weights on the
     description's hidden layer alone, with its bias), so the plan's description must predict the outcome
     by itself and the pooled sequence adds what it lacks -- beside the pooled state, fitted with it, the
-    description's part is not otherwise asked to stand on its own.
+    description's part is not otherwise asked to stand on its own. Measured on robosuite's stacking (2000
+    episodes, the sized description, W = 1): the FIRP ensemble 0.880, between two runs without it (0.868,
+    0.887) -- no gain beyond the runs' own spread (``docs/robosuite.md``).
 
     ``open_loop_sample`` (default on, as the paper trains on samples) off rolls the training open loop
     on means from the posterior mean of e_1, i.e. exactly the sequence :meth:`FIRP.score` classifies.
