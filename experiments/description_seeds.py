@@ -29,15 +29,11 @@ import argparse
 import json
 import shlex
 import sys
-import warnings
 from pathlib import Path
 
 import numpy as np
 
-from experiments.grasp_clearance import (
-    clearance_and_heights,
-    sized_clearance_and_heights,
-)
+from experiments.grasp_clearance import clearance_and_heights, fit_mlp, sized_clearance_and_heights
 from firp.core.episodes import EpisodeDataset
 from firp.evaluate import split_indices
 from firp.metrics import balanced_accuracy, choose_threshold
@@ -50,20 +46,12 @@ GROUP = 3  # seeds per group: grasp_clearance's best-of-three
 
 def seed_scores(X: np.ndarray, labels: np.ndarray, train: np.ndarray, valid: np.ndarray, seeds: int,
                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Probabilities of ``seeds`` MLPs trained on ``train`` (grasp_clearance's recipe: standardised input,
-    64 units, L2 0.01, 400 iterations): on the validation episodes (seeds, n_valid) and on every episode
-    (seeds, N; index it with the test episodes)."""
-    from sklearn.exceptions import ConvergenceWarning
-    from sklearn.neural_network import MLPClassifier
-    from sklearn.pipeline import make_pipeline
-    from sklearn.preprocessing import StandardScaler
-
+    """Probabilities of ``seeds`` MLPs (grasp_clearance's :func:`fit_mlp`, seeds 0..N-1) trained on ``train``:
+    on the validation episodes (seeds, n_valid) and on every episode (seeds, N; index it with the test
+    episodes)."""
     p_valid, p_all = [], []
     for seed in range(seeds):
-        model = make_pipeline(StandardScaler(), MLPClassifier((64,), alpha=1e-2, max_iter=400, random_state=seed))
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", ConvergenceWarning)
-            model.fit(X[train], labels[train])
+        model = fit_mlp(X[train], labels[train], seed)
         p_valid.append(model.predict_proba(X[valid])[:, 1])
         p_all.append(model.predict_proba(X)[:, 1])
     return np.array(p_valid), np.array(p_all)
