@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from experiments.outcome_sensitivity import analyse
-from experiments.resumable import append_as_done
+from experiments.resumable import run_seeds
 
 PERTURB_STREAM = 29  # separates the perturbation draws from the scene, perception and choice streams
 
@@ -95,16 +95,11 @@ def main(argv: list[str] | None = None) -> int:
                         ("--workers", args.workers)):
         if value < 1:
             parser.error(f"{flag}: must be at least 1, got {value}")
-    from planner_client.loop import read_records
-
     started = time.perf_counter()
-    done = {int(r["seed"]): r for r in read_records(args.out)}
     wanted = [args.seed_offset + i for i in range(args.episodes)]
-    todo = [s for s in wanted if s not in done]
-    append_as_done(args.out, run_episode, todo, done=done, key=lambda record: int(record["seed"]), workers=args.workers,
-                   initializer=_init, initargs=(args.task, args.perturbations, args.xy_mm / 1000.0, args.yaw_deg,
-                                                args.pose_error_mm, args.pose_error_deg),
-                   desc=f"sensitivity {args.task}")
+    done = run_seeds(args.out, run_episode, wanted, workers=args.workers, initializer=_init,
+                     initargs=(args.task, args.perturbations, args.xy_mm / 1000.0, args.yaw_deg, args.pose_error_mm,
+                               args.pose_error_deg), desc=f"sensitivity {args.task}")
     records = [done[s] for s in wanted]
     planned = [r for r in records if "unplannable" not in r]
     if len({r["success"] for r in planned}) < 2:
