@@ -33,13 +33,15 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.grasp_clearance import clearance_and_heights, fit_mlp, sized_clearance_and_heights
+from experiments.grasp_clearance import (clearance_and_heights, fit_mlp, sized_clearance_and_heights,
+                                        table_sized_clearance_and_heights)
 from firp.core.episodes import EpisodeDataset
 from firp.evaluate import split_indices
 from firp.metrics import balanced_accuracy, choose_threshold
 
 #: the descriptions this experiment can read (the product's ``--plan-description`` names)
 DESCRIPTIONS = {"sized_clearance_and_heights": sized_clearance_and_heights,
+                "table_sized_clearance_and_heights": table_sized_clearance_and_heights,
                 "clearance_and_heights": clearance_and_heights}
 GROUP = 3  # seeds per group: grasp_clearance's best-of-three
 

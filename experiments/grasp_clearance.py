@@ -94,6 +94,17 @@ def sized_clearance_and_heights(actions: np.ndarray, max_picks: int, halves: np.
                          description="sized_clearance_and_heights", halves=true).numpy()
 
 
+def table_sized_clearance_and_heights(actions: np.ndarray, max_picks: int) -> np.ndarray:
+    """``(N, T, 16)`` plans -> the clearance to blocks sized from each grasp's height over the table, and the
+    heights ``(N, 9 P)``: the product's ``--plan-description table_sized_clearance_and_heights``."""
+    import torch
+
+    from firp.model.plan_geometry import plan_geometry
+
+    return plan_geometry(torch.as_tensor(actions, dtype=torch.float64), None, max_picks,
+                         description="table_sized_clearance_and_heights").numpy()
+
+
 def true_halves(ds: EpisodeDataset, names: list[str], max_picks: int) -> np.ndarray | None:
     """Each episode's blocks' half-sizes in the order the plan moves them ``(N, 1 + P)`` -- the tower's base
     first -- from the recorded block order and the scene's cube sizes (robosuite's stacking records both);

@@ -214,7 +214,7 @@ def plot(curves: dict, ceiling: float | None, target: float | None, dataset_trai
         ax.set_xscale("log", base=2)
         ax.set_xlabel("training episodes")
         ax.set_title(learner.replace("_", " "))
-        ax.legend(fontsize=7, loc="upper left")
+        ax.legend(fontsize=7, loc="center left")
     axes[0][0].set_ylabel("test balanced accuracy")
     axes[0][0].set_ylim(0.45, 1.0)
     fig.suptitle(title)

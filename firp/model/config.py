@@ -124,7 +124,10 @@ class HeadConfig:
 #: What a plan's description (:mod:`firp.model.plan_geometry`) holds: the numbers in each grasp's frame, the
 #: hand's clearance to the other blocks, that clearance with each pick's grasp and release heights, or the
 #: grasp-frame numbers and the clearance; or the clearance to blocks of the sizes the plan shows, with the heights.
-PLAN_DESCRIPTIONS = ("grasp_frame", "clearance", "clearance_and_heights", "sized_clearance_and_heights", "both")
+#: ``table_sized_clearance_and_heights`` sizes every picked block from its grasp's height over robosuite's
+#: stacking table too.
+PLAN_DESCRIPTIONS = ("grasp_frame", "clearance", "clearance_and_heights", "sized_clearance_and_heights",
+                     "table_sized_clearance_and_heights", "both")
 
 
 @dataclass(frozen=True)
@@ -142,7 +145,9 @@ class GeometryConfig:
     ``object_half``: 6 numbers per pick), ``clearance_and_heights`` (those 6 and the heights at which the
     pick's grasp closes and its release opens, and the release's rise over the first release: 9 per pick),
     ``sized_clearance_and_heights`` (the same 9, the clearance measured to blocks of the sizes the plan's
-    tower heights show, ``object_half`` for a block it does not show) or ``both`` (the grasp-frame numbers
+    tower heights show, ``object_half`` for a block it does not show), ``table_sized_clearance_and_heights``
+    (the same, every picked block sized by its grasp's height over robosuite's stacking table, so the last one
+    too) or ``both`` (the grasp-frame numbers
     and the clearance). ``layers``: how many hidden layers (``hidden`` wide) FIRP's and the GRU's success
     heads read it through -- 2 as shipped; 1 reads it as a single ReLU layer (on robosuite's stacking a lone
     scikit-learn MLP on the 27 sized numbers scores 0.89 with one hidden layer and 0.86-0.87 with two, but

@@ -452,3 +452,54 @@ def test_description_weight_flag_sets_the_loss_and_needs_the_description():
         recipe_from(parser.parse_args(["--data", "x", "--no-plan-geometry", "--description-weight", "1"]))
     with pytest.raises(SystemExit):
         parser.parse_args(["--data", "x", "--description-weight", "-1"])
+
+
+def _events(grasp_z: list[list[float]], tower: list[list[float]], present: list[list[bool]]) -> dict:
+    """Pick events with only the heights set: grasps at ``grasp_z``, releases ``tower`` above them."""
+    g = torch.zeros(len(grasp_z), len(grasp_z[0]), 3, dtype=torch.float64)
+    g[..., 2] = torch.tensor(grasp_z, dtype=torch.float64)
+    r = g.clone()
+    r[..., 2] += torch.tensor(tower, dtype=torch.float64)
+    return {"grasp_pos": g, "release_pos": r, "present": torch.tensor(present)}
+
+
+def test_grasp_halves_read_each_picked_block_from_its_grasp_over_the_table():
+    from firp.model.plan_geometry import HIGH_GRASP_BELOW_TOP, TABLE_Z, block_halves, grasp_halves
+
+    # a centre grasp on a 2.5 cm cube, a high grasp on a 2 cm one, a high grasp on a 2.5 cm one; then a centre
+    # grasp on a 2 cm cube and an absent pick
+    z = [[TABLE_Z + 0.025, TABLE_Z + 2 * 0.02 - HIGH_GRASP_BELOW_TOP, TABLE_Z + 2 * 0.025 - HIGH_GRASP_BELOW_TOP],
+         [TABLE_Z + 0.0205, TABLE_Z + 0.03, 0.0]]
+    ev = _events(z, [[0.045, 0.09, 0.13], [0.05, 0.09, 0.0]], [[True, True, True], [True, True, False]])
+    halves = grasp_halves(ev, 0.02)
+    shown = block_halves(ev, 0.02)
+    assert halves.shape == (2, 4)
+    torch.testing.assert_close(halves[:, 0], shown[:, 0])  # the base is never grasped: its release shows it
+    torch.testing.assert_close(halves[0, 1:], torch.tensor([0.025, 0.02, 0.025], dtype=torch.float64))
+    torch.testing.assert_close(halves[1, 1:3], torch.tensor([0.0205, 0.019], dtype=torch.float64))
+    assert halves[1, 3] == shown[1, 3] == 0.02  # an absent pick: the assumed size
+
+
+def test_the_table_sized_clearance_reads_robosuites_stacking_plans_to_their_cubes_sizes():
+    """Four plans of robosuite's three-cube stacking (``tests/golden/robosuite_stack_three_plans.json``, from the
+    collected set: the 5 cm cube last, grasped at its centre and high; first; as the base): every picked cube's
+    size decoded from the plan alone within the planner's 1 mm height estimate error, where the tower's steps
+    (``block_halves``) leave the last one at the assumed 4 cm."""
+    from firp.model.plan_geometry import block_halves, grasp_halves
+
+    recorded = json.loads((Path(__file__).resolve().parents[2] / "golden" / "robosuite_stack_three_plans.json").read_text())
+    a = torch.tensor(recorded["actions"], dtype=torch.float64)
+    true = torch.tensor(recorded["halves"], dtype=torch.float64)  # (4, 3): base, first pick, second pick
+    ev = pick_events(a)
+    decoded, shown = grasp_halves(ev, 0.02), block_halves(ev, 0.02)
+    torch.testing.assert_close(decoded[:, 1:3], true[:, 1:3], atol=2.5e-3, rtol=0)
+    assert torch.all((shown[:2, 2] - true[:2, 2]).abs() > 4e-3)  # the 5 cm cube stacked last: not in the steps
+    table = plan_geometry(a, description="table_sized_clearance_and_heights")
+    sized = plan_geometry(a, description="sized_clearance_and_heights")
+    assert table.shape == sized.shape == (4, geometry_dim(description="table_sized_clearance_and_heights")) == (4, 27)
+    assert torch.equal(table[:, 18:], sized[:, 18:])  # the heights are the same numbers; the clearance is not
+    assert not torch.equal(table[:, :18], sized[:, :18])
+    # within millimetres of the clearance to the true sizes (the base reads 2.5 mm wide: half the release gap)
+    truly = torch.cat([true, torch.full((4, 1), 0.02, dtype=torch.float64)], dim=1)
+    torch.testing.assert_close(table, plan_geometry(a, description="table_sized_clearance_and_heights",
+                                                    halves=truly), atol=5e-3, rtol=0)
