@@ -70,39 +70,35 @@ def describe(actions: np.ndarray, max_picks: int) -> tuple[np.ndarray, np.ndarra
     return description, clearance, np.where(present, at_grasps, np.inf).min(axis=1)
 
 
-def clearance_and_heights(actions: np.ndarray, max_picks: int) -> np.ndarray:
-    """``(N, T, 16)`` plans -> the clearance and each pick's grasp and release heights ``(N, 9 P)``, the
-    product's ``--plan-description clearance_and_heights``."""
-    import torch
-
-    from firp.model.plan_geometry import plan_geometry
-
-    return plan_geometry(torch.as_tensor(actions, dtype=torch.float64), None, max_picks,
-                         description="clearance_and_heights").numpy()
-
-
-def sized_clearance_and_heights(actions: np.ndarray, max_picks: int, halves: np.ndarray | None = None) -> np.ndarray:
-    """``(N, T, 16)`` plans -> the clearance to blocks of the sizes the plan shows and the heights ``(N, 9 P)``,
-    the product's ``--plan-description sized_clearance_and_heights``; with ``halves`` ``(N, 1 + P)`` (the base's
-    and each pick's block's true half-size) the clearance to blocks of those sizes instead."""
+def described(actions: np.ndarray, max_picks: int, description: str, halves: np.ndarray | None = None) -> np.ndarray:
+    """``(N, T, 16)`` plans -> the product's ``--plan-description description`` of them ``(N, G)`` as numpy
+    (:func:`firp.model.plan_geometry.plan_geometry` in double precision); ``halves`` as it takes them."""
     import torch
 
     from firp.model.plan_geometry import plan_geometry
 
     true = None if halves is None else torch.as_tensor(halves, dtype=torch.float64)
     return plan_geometry(torch.as_tensor(actions, dtype=torch.float64), None, max_picks,
-                         description="sized_clearance_and_heights", halves=true).numpy()
+                         description=description, halves=true).numpy()
+
+
+def clearance_and_heights(actions: np.ndarray, max_picks: int) -> np.ndarray:
+    """``(N, T, 16)`` plans -> the clearance and each pick's grasp and release heights ``(N, 9 P)``, the
+    product's ``--plan-description clearance_and_heights``."""
+    return described(actions, max_picks, "clearance_and_heights")
+
+
+def sized_clearance_and_heights(actions: np.ndarray, max_picks: int, halves: np.ndarray | None = None) -> np.ndarray:
+    """``(N, T, 16)`` plans -> the clearance to blocks of the sizes the plan shows and the heights ``(N, 9 P)``,
+    the product's ``--plan-description sized_clearance_and_heights``; with ``halves`` ``(N, 1 + P)`` (the base's
+    and each pick's block's true half-size) the clearance to blocks of those sizes instead."""
+    return described(actions, max_picks, "sized_clearance_and_heights", halves)
 
 
 def table_sized_clearance_and_heights(actions: np.ndarray, max_picks: int) -> np.ndarray:
     """``(N, T, 16)`` plans -> the clearance to blocks sized from each grasp's height over the table, and the
     heights ``(N, 9 P)``: the product's ``--plan-description table_sized_clearance_and_heights``."""
-    import torch
-
-    from firp.model.plan_geometry import plan_geometry
-
-    return plan_geometry(torch.as_tensor(actions, dtype=torch.float64), None, max_picks,
-                         description="table_sized_clearance_and_heights").numpy()
+    return described(actions, max_picks, "table_sized_clearance_and_heights")
 
 
 def true_halves(ds: EpisodeDataset, names: list[str], max_picks: int) -> np.ndarray | None:

@@ -80,7 +80,9 @@ def run_episode(seed: int) -> dict:
 # -- features (pure functions of a record) -----------------------------------------------------------------
 
 def choice_features(record: dict, objects: list[str]) -> list[float]:
-    """Each object's place in the order, then its face pair and grasp height (-1 for an object not moved)."""
+    """Each object's place in the order, then its face pair and grasp height (-1 for an object not moved):
+    ``experiments.choice_predictability``'s, imported here because that module needs torch, which the
+    robosuite environment that runs the episodes does not have."""
     from experiments.choice_predictability import choice_features as from_attrs
 
     return from_attrs(record, objects)
