@@ -178,13 +178,19 @@ for name in service sim_worker planner ray_head; do
     image="${IMAGE[$name]}:$FIRP_IMAGE_TAG"
     bytes=$(inspect image inspect --format '{{.Size}}' "$image") || fail "no image $image after the build"
     SIZE_MB[$name]=$((bytes / 1000000))
-    if [ "$ENGINE" = podman ]; then
+    if [ "$ENGINE" = podman ] && [ "$name" != planner ]; then
         # the build stage's images (a venv and the wheels, ~1 GB per image) are dangling once the runtime
-        # stage has its copy; podman's storage is ours, so drop them: four builds' worth filled ~4 GB more
+        # stage has its copy; podman's storage is ours, so drop them: four builds' worth filled ~4 GB more.
+        # Not after the planner: ray_head builds on the planner's stages, and a rebuilt build stage would
+        # make it a second full virtualenv instead of the planner's layers plus Ray.
         inspect image prune -f >>"$LOGS/prune.log" 2>&1 || echo "   (podman image prune failed, see $LOGS/prune.log)"
     fi
     echo "   $image: ${SIZE_MB[$name]} MB in ${BUILD_S[$name]} s (free disk $(df -h --output=avail "$WORK" | tail -1 | tr -d ' '))"
 done
+
+if [ "$ENGINE" = podman ]; then
+    echo "   image storage: $(du -sh "$WORK/storage" 2>/dev/null | cut -f1) for the four images and their base"
+fi
 
 step "image contents"
 # What each image must not contain: the service no CUDA and no MuJoCo; the sim worker and the planner no torch.

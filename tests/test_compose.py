@@ -70,21 +70,33 @@ def test_services_build_from_the_dockerfiles(compose):
         # every build argument compose passes is one the Dockerfile declares, each from a FIRP_* variable
         assert set(build["args"]) <= set(_build_args(part)), (name, set(build["args"]) - set(_build_args(part)))
         assert {"BASE_IMAGE", "PIP_NO_INDEX"} <= set(build["args"])
-        fixed = {"EXTRAS": "planner,ray"} if name == "ray_head" else {}
-        assert all(str(v).startswith("${FIRP_") for k, v in build["args"].items() if k not in fixed)
-        assert {k: build["args"][k] for k in fixed} == fixed
+        assert all(str(v).startswith("${FIRP_") for v in build["args"].values())
+        # ray_head builds the planner's Dockerfile to its Ray stage (the planner's layers plus Ray); the
+        # others build the default target
+        assert build.get("target") == ("planner-ray" if name == "ray_head" else None)
+        if "target" in build:
+            assert re.search(rf"^FROM \S+ AS {build['target']}$", _dockerfile(part), re.M)
         image = f"firp-{part.replace('_', '-')}{'-ray' if name == 'ray_head' else ''}:${{FIRP_IMAGE_TAG:-latest}}"
         assert service["image"] == image
 
 
 @pytest.mark.parametrize("name", list(DOCKERFILES))
 def test_wheels_and_build_tools_stay_in_the_build_stage(name):
-    """Two stages: docker/wheels and pip's work in the first; the runtime copies only the venv and /app."""
+    """docker/wheels and pip's work in the build stage; the runtime copies only the venv and /app."""
     text = _dockerfile(name)
     stages = re.split(r"^FROM ", text, flags=re.M)[1:]
-    assert len(stages) == 2 and stages[0].startswith("${BASE_IMAGE} AS build") and stages[1].startswith("${BASE_IMAGE}\n")
-    assert "COPY docker/wheels /wheels" in stages[0] and "/wheels" not in stages[1]
-    assert "pip install" not in stages[1]
+    assert stages[0].startswith("${BASE_IMAGE} AS build") and "COPY docker/wheels /wheels" in stages[0]
+    runtime = [stage for stage in stages if stage.startswith("${BASE_IMAGE}")][1:]
+    assert len(runtime) == 1, "one runtime stage from the base image"
+    assert "/wheels" not in runtime[0] and "pip install" not in runtime[0]
+    if name == "planner":
+        # the Ray stage adds only Ray's own wheels, set apart in a stage of their own, and leaves none behind
+        ray = next(stage for stage in stages if stage.startswith("planner AS planner-ray"))
+        assert "COPY --from=ray-wheels" in ray and "--no-index --find-links /tmp/ray-wheels" in ray
+        assert "rm -rf /tmp/ray-wheels" in ray and "docker/wheels" not in ray
+        assert stages[-1].strip() == "planner", "the default target is the planner alone"
+    else:
+        assert len(stages) == 2
     assert _build_args(name).get("PIP_FIND_LINKS") == "/wheels"
     assert (ROOT / "docker/wheels/README.md").is_file()  # the folder exists in a fresh clone, so COPY works
 
@@ -159,7 +171,7 @@ def test_servers_start_as_the_firp_command_configured_by_the_environment(compose
 def test_images_are_slim_and_run_as_a_non_root_user(compose, name):
     text = _dockerfile(name)
     assert _build_args(name)["BASE_IMAGE"] == "python:3.11-slim"  # the default; a local Debian base here
-    assert re.search(r"^FROM \$\{BASE_IMAGE\}$", text, re.M)
+    assert re.search(r"^FROM \$\{BASE_IMAGE\}( AS (?!build\b)[\w-]+)?$", text, re.M)  # the runtime stage
     users = re.findall(r"^USER (\S+)", text, re.M)
     assert users and users[-1] not in ("root", "0", "0:0")
     user = str(compose["services"][name].get("user", users[-1]))
@@ -262,3 +274,14 @@ def test_the_ray_profile_runs_a_collection_on_a_head_and_workers(compose):
     args = build_parser("firp").parse_args(["collect", *command])
     assert args.out == Path("/app/data/stacking.h5") and (args.task, args.episodes, args.workers) == ("stacking", 640, 4)
     assert "ray==" in (ROOT / "pyproject.toml").read_text()
+
+
+def test_build_contexts_leave_local_state_out():
+    """Every build sends the context to the engine (podman unpacks a copy of it): the virtualenvs, datasets,
+    runs and the smoke run's own image storage stay out, or a build costs gigabytes of disk it never uses."""
+    ignored = {line.strip() for line in (ROOT / ".dockerignore").read_text().splitlines()
+               if line.strip() and not line.startswith("#")}
+    makefile = (ROOT / "Makefile").read_text()
+    venvs = set(re.findall(r"^(?:RS_)?VENV \?= (\S+)$", makefile, re.M))
+    assert venvs and venvs <= ignored, venvs - ignored
+    assert {".git", "data", "runs", ".compose-smoke"} <= ignored

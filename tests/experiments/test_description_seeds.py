@@ -55,3 +55,41 @@ def test_bad_arguments_name_the_flag_and_the_rule(tiny_dataset, tmp_path, capsys
     assert stop.value.code == 2
     err = capsys.readouterr().err
     assert flag in err and rule in err
+
+
+def test_a_training_share_is_stratified_nested_and_fixed_per_split():
+    from experiments.description_seeds import training_share
+    labels = np.array([True] * 60 + [False] * 20)
+    train = np.arange(0, 80, 1)[::2]  # 30 successes, 10 failures
+    half, quarter = training_share(labels, train, 0.5, 0), training_share(labels, train, 0.25, 0)
+    assert set(half) <= set(train) and set(quarter) <= set(half)
+    assert labels[half].sum() == 15 and (~labels[half]).sum() == 5
+    assert list(training_share(labels, train, 0.5, 0)) == list(half)
+    assert list(training_share(labels, train, 0.5, 1)) != list(half)
+    assert list(training_share(labels, train, 1.0, 0)) == list(train)
+    assert (~labels[training_share(labels, train, 0.01, 0)]).sum() == 1  # every class keeps an episode
+
+
+def test_the_learning_curve_ends_at_the_full_study_and_is_drawn(tiny_dataset, tmp_path):
+    out, plot = tmp_path / "curve.json", tmp_path / "curve.png"
+    assert main(["--data", str(tiny_dataset), "--repeats", "2", "--seeds", "3", "--out", str(tmp_path / "full.json")]) == 0
+    assert main(["--data", str(tiny_dataset), "--repeats", "2", "--seeds", "3", "--fractions", "0.5",
+                 "--target", "0.9", "--plot", str(plot), "--out", str(out)]) == 0
+    full, result = json.loads((tmp_path / "full.json").read_text()), json.loads(out.read_text())
+    assert [p["fraction"] for p in result["curve"]] == [0.5, 1.0] and result["target"] == 0.9
+    assert result["curve"][-1]["summary"] == full["summary"] == result["summary"]
+    assert result["curve"][0]["train_episodes"] < result["curve"][1]["train_episodes"]
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("extra, rule", [(["--fractions", "0"], "strictly between 0 and 1"),
+                                         (["--fractions", "1.5"], "strictly between 0 and 1"),
+                                         (["--fractions", "0.5", "0.5"], "each share once"),
+                                         (["--plot", "c.png"], "needs --fractions"),
+                                         (["--target", "0.9"], "needs --fractions")])
+def test_bad_curve_flags_name_the_flag_and_the_rule(tiny_dataset, tmp_path, capsys, extra, rule):
+    with pytest.raises(SystemExit) as stop:
+        main(["--data", str(tiny_dataset), "--out", str(tmp_path / "x.json"), *extra])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert extra[0] in err and rule in err

@@ -39,6 +39,8 @@ def test_protocol_writes_results_and_resumes(tiny_dataset, tmp_path):
         y = ds.success_labels()[singles["firp"]["test_index"]].astype(bool)
     assert ens["test_balanced_accuracy"] == pytest.approx(balanced_accuracy(y, mean >= 0.5))
     assert "firp_ensemble − best non-oracle baseline (a_mlp)" in (out / "results.md").read_text()
+    # a dataset of no named world is judged by our own world's bar
+    assert results["env"] is None and "(target ≥ +0.05:" in (out / "results.md").read_text()
     assert "dvd" in results["not_run"] and "| a_mlp |" in (out / "results.md").read_text()
     # a second call finds every (repeat, method) done and trains nothing
     before = (out / "r0-firp.json").stat().st_mtime_ns
@@ -140,3 +142,13 @@ def test_runs_as_ray_tasks_equal_the_sequential_run(tiny_dataset, tmp_path):
     sequential, on_ray = rows("sequential"), rows("ray")
     assert [(r["repeat"], r["method"]) for r in on_ray] == [(r["repeat"], r["method"]) for r in sequential]
     assert on_ray == sequential  # every score, threshold and metric, in protocol order
+
+
+def test_the_bar_over_the_best_baseline_follows_the_datasets_world():
+    from firp.evaluate import target_line, target_margin
+    assert target_margin("robosuite") == 0.02 and target_margin("firp-mujoco-panda") == 0.05
+    assert target_margin(None) == 0.05
+    rows = [{"method": "gru", "test_balanced_accuracy": 0.86}, {"method": "firp_ensemble", "test_balanced_accuracy": 0.89},
+            {"method": "oracle", "test_balanced_accuracy": 0.99}]
+    assert target_line(rows, 0.02) == "firp_ensemble − best non-oracle baseline (gru) = +0.030 (target ≥ +0.02: met)"
+    assert target_line(rows, 0.05).endswith("(target ≥ +0.05: not met)")
