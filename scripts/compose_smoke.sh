@@ -193,10 +193,11 @@ if [ "$ENGINE" = podman ]; then
 fi
 
 step "image contents"
-# What each image must not contain: the service no CUDA and no MuJoCo; the sim worker and the planner no torch.
+# What each image must not contain: the service no CUDA and no MuJoCo; the sim worker, the planner and
+# ray_head no torch (ray_head: Ray beside the planner).
 : >"$LOGS/contents.log"
 probe() {  # probe SERVICE PYTHON-CODE
-    "${COMPOSE[@]}" --profile planner run --rm -T --no-deps --entrypoint python "$1" -c "$2" >>"$LOGS/contents.log" 2>&1 \
+    "${COMPOSE[@]}" "${PROFILES[@]}" run --rm -T --no-deps --entrypoint python "$1" -c "$2" >>"$LOGS/contents.log" 2>&1 \
         || fail "$1's image: $(tail -1 "$LOGS/contents.log")"
 }
 no_cuda='import glob, importlib.util as u, sys, torch
@@ -207,6 +208,8 @@ no_torch='import importlib.util as u, mujoco; assert u.find_spec("torch") is Non
 probe service "$no_cuda"
 probe sim_worker "$no_torch"
 probe planner "$no_torch"
+# ray_head: the planner's image plus Ray (its planner-ray stage), still no torch
+probe ray_head 'import importlib.util as u, mujoco, ray, planner_client; assert u.find_spec("torch") is None, "torch is installed"; print("ray", ray.__version__, "on the planner, no torch")'
 grep -v '^Creating' "$LOGS/contents.log" | sed 's/^/   /'
 
 step "up service sim_worker"
