@@ -23,8 +23,8 @@ validation and test episodes unchanged, the share fixed per split and nested: 1/
 a learning curve of what the plan holds -- how much one more doubling of the episodes is worth before
 anyone collects it. ``--target`` draws the bar to clear, ``--plot`` the curve.
 
-    python -m experiments.description_seeds --data data/robosuite_stack_three_workspaceview_2000.h5 \
-        --description table_sized_clearance_and_heights --repeats 6 --fractions 0.125 0.25 0.5 \
+    python -m experiments.description_seeds --data data/robosuite_stack_three_workspaceview_2000.h5 \\
+        --description table_sized_clearance_and_heights --repeats 6 --fractions 0.125 0.25 0.5 \\
         --target 0.893 --out runs/description_curve.json --plot runs/description_curve.png
 
     python -m experiments.description_seeds --data data/robosuite_stack_three_workspaceview_2000.h5 \\

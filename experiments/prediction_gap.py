@@ -32,9 +32,10 @@ import numpy as np
 import torch
 
 from experiments.tcr_ablation import find_checkpoints, load_model
+from firp.core.episodes import EpisodeDataset
 from firp.data import SequenceData, load_sequences
-from firp.evaluate import BASELINES, FIRP_VARIANTS, TARGET_MARGIN, best_baseline, ensemble_rows, held_out_metrics, \
-    mean_std, split_indices
+from firp.evaluate import BASELINES, FIRP_VARIANTS, best_baseline, ensemble_rows, held_out_metrics, \
+    mean_std, split_indices, target_margin
 from firp.train import predict
 
 SOURCES = ("predicted", "real", "first_only")
@@ -113,7 +114,9 @@ def main(argv: list[str] | None = None) -> int:
                  for m in BASELINES if any(r["method"] == m for r in rows)}
     oracle = [r["test_balanced_accuracy"] for r in rows if r["method"] == "oracle"]
     best = best_baseline(rows)
-    bar = best[1] + TARGET_MARGIN if best else None
+    with EpisodeDataset(args.data) as dataset:  # the dataset's world sets the margin, as in firp evaluate
+        margin = target_margin(dataset.attrs.get("env"))
+    bar = best[1] + margin if best else None
 
     methods = sorted({e["method"] for e in per_run})
     lines = [f"| FIRP head on | {' | '.join(methods)} | ensemble |", "|---|" + "---|" * (len(methods) + 1)]
@@ -128,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\ntest balanced accuracy (threshold 0.5) over repeats {repeats}\n{table}\n\nsame run: {context}")
     if bar is not None:
         real = float(np.mean([e["real"]["test_balanced_accuracy"] for e in ensemble]))
-        print(f"target (best baseline {best[0]} + {TARGET_MARGIN}) = {bar:.3f}; "
+        print(f"target (best baseline {best[0]} + {margin}) = {bar:.3f}; "
               f"FIRP ensemble with a perfect world model (real features) = {real:.3f}")
     diffs = [e["max_abs_diff_to_recorded_scores"] for e in per_run]
     print(f"recomputed inference scores vs recorded: max |diff| {max(diffs):.2e}")
