@@ -240,7 +240,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  target {args.target:.3f}")
         if args.plot is not None:
             plot_curve(curve, args.seeds, args.target, args.plot,
-                       f"{args.data.name}: a small MLP on {args.description}")
+                       f"{args.data.name}\na small MLP on the plan's {args.description}")
             print(f"wrote {args.plot}")
     protocols = {str(p): protocol_thresholds(p) for p in args.protocol}
     for path, methods in protocols.items():
