@@ -4,11 +4,13 @@ The paper's numbers are its Table "Balanced accuracies in the classification exp
 three-piece assembly, pick & place, stacking; 3 repeats). firp's come from ``firp evaluate``'s
 ``results.json`` on the robosuite task nearest each MimicGen column (assembly -> ``nut_assembly``,
 pick & place -> ``pick_place``, stacking -> ``stack_three``). A column firp has not run stays empty.
-The targets of the robosuite world are checked per column: the FIRP ensemble at least the paper's
-FIRP − 0.03 and at least the best non-oracle baseline + 0.02 of the same run; the Oracle ≥ 0.95.
+A task given several runs (other datasets or plan descriptions of the same task) gets a column per run,
+named by its dataset and description, so a larger collection stands beside the paper-sized one instead
+of replacing it. The targets of the robosuite world are checked per column: the FIRP ensemble at least
+the paper's FIRP − 0.03 and at least the best non-oracle baseline + 0.02 of the same run; the Oracle ≥ 0.95.
 
     python -m experiments.paper_table --stack-three runs/eval-robosuite_stack_three/results.json \\
-        --out docs/results/robosuite_paper_table.md
+        runs/eval-robosuite_stack_three_2000/results.json --out docs/results/robosuite_paper_table.md
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ PAPER = {
     "firp": ((0.932, 0.034), (0.952, 0.023), (0.923, 0.028)),
 }
 ROWS = (("oracle", "Oracle"), ("a_mlp", "A-MLP"), ("a_mlp_image", "A-MLP + image (paper: ResNet; firp: EfficientNet-Lite0)"),
-        ("gru", "GRU"), ("geometry_mlp", "Geometry MLP (firp's: the plan's grasp-frame description alone)"),
+        ("gru", "GRU"), ("geometry_mlp", "Geometry MLP (firp's: the plan's description alone, the one its run reads)"),
         ("dvd", "DVD"), ("firp", "FIRP"), ("firp_tcr", "FIRP + TCR"),
         ("firp_ensemble", "FIRP ensemble (firp's: FIRP, +TTC, +ATC, +TCR)"))
 #: the robosuite world's bars: the paper's FIRP − 0.03; ``firp evaluate``'s margin over the best baseline (one
@@ -72,42 +74,63 @@ def targets(column: int, scores: dict[str, list[float]]) -> list[str]:
     return lines
 
 
-def render(runs: dict[str, dict]) -> str:
-    """``runs``: robosuite task -> its results.json."""
-    scores = {task: method_scores(results) for task, results in runs.items()}
-    head = ["method"] + [f"paper: MimicGen {name}" for name, _ in COLUMNS] + [f"firp: robosuite `{task}`"
-                                                                             for _, task in COLUMNS]
+def run_label(results: dict) -> str:
+    """What tells two runs of one task apart: the dataset's file name and the plan description read."""
+    label = f"`{Path(results.get('dataset', 'dataset')).stem}`"
+    description = results.get("overrides", {}).get("plan_description")
+    return f"{label}, {description}" if description else label
+
+
+def firp_columns(runs: dict[str, dict | list[dict]]) -> list[tuple[int, str, dict | None, bool]]:
+    """(paper column, task, its results or None, whether the task has several runs) per firp column."""
+    columns = []
+    for column, (_, task) in enumerate(COLUMNS):
+        listed = runs.get(task)
+        listed = [None] if listed is None else listed if isinstance(listed, list) else [listed]
+        columns += [(column, task, results, len(listed) > 1) for results in listed]
+    return columns
+
+
+def render(runs: dict[str, dict | list[dict]]) -> str:
+    """``runs``: robosuite task -> its results.json, or several (a column each, in the order given)."""
+    columns = firp_columns(runs)
+    scores = [method_scores(results) if results else {} for _, _, results, _ in columns]
+    head = ["method"] + [f"paper: MimicGen {name}" for name, _ in COLUMNS] + [
+        f"firp: robosuite `{task}`" + (f" ({run_label(results)})" if several else "")
+        for _, task, results, several in columns]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for key, label in ROWS:
         paper = [f"{m:.3f} ± {s:.3f}" for m, s in PAPER[key]] if key in PAPER else [""] * 3
         ours = []
-        for _, task in COLUMNS:
-            if task not in runs:
+        for (_, _, results, _), run_scores in zip(columns, scores):
+            if results is None:
                 ours.append("not run yet")
             elif key == "dvd":
-                ours.append("not run: " + runs[task].get("not_run", {}).get("dvd", "no weights"))
+                ours.append("not run: " + results.get("not_run", {}).get("dvd", "no weights"))
             else:
-                ours.append(_cell(scores[task].get(key)))
+                ours.append(_cell(run_scores.get(key)))
         lines.append("| " + " | ".join([label, *paper, *ours]) + " |")
     lines += ["", "Each firp cell: mean ± std over the repeats (their number in brackets) of the test balanced "
               "accuracy, `firp evaluate`'s protocol (stratified 80/20 split per repeat, 20% of train for "
-              "validation, every method on the same splits)."]
-    for column, (name, task) in enumerate(COLUMNS):
-        if task in runs:
-            lines += ["", f"**{task}** (nearest to MimicGen {name}): `{runs[task]['command']}`", ""]
-            lines += [f"- {line}" for line in targets(column, scores[task])]
+              "validation, every method on the same splits); an empty one, a method its run left out."]
+    for (column, task, results, several), run_scores in zip(columns, scores):
+        if results is not None:
+            name = COLUMNS[column][0]
+            which = f", {run_label(results)}" if several else ""
+            lines += ["", f"**{task}**{which} (nearest to MimicGen {name}): `{results['command']}`", ""]
+            lines += [f"- {line}" for line in targets(column, run_scores)]
     return "\n".join(lines) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     for _, task in COLUMNS:
-        parser.add_argument(f"--{task.replace('_', '-')}", type=Path, default=None, metavar="RESULTS_JSON",
-                            help=f"firp evaluate's results.json on robosuite {task}")
+        parser.add_argument(f"--{task.replace('_', '-')}", type=Path, nargs="+", default=None, metavar="RESULTS_JSON",
+                            help=f"firp evaluate's results.json on robosuite {task} (several: a column each)")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
-    runs = {task: json.loads(path.read_text()) for _, task in COLUMNS
-            if (path := getattr(args, task)) is not None}
+    runs = {task: [json.loads(path.read_text()) for path in paths] for _, task in COLUMNS
+            if (paths := getattr(args, task)) is not None}
     if not runs:
         parser.error("--stack-three / --nut-assembly / --pick-place: give at least one results.json")
     text = render(runs)

@@ -39,6 +39,31 @@ def test_the_table_puts_firps_numbers_beside_the_papers_and_checks_the_targets(t
     assert PAPER["oracle"][1] == (0.981, 0.016)
 
 
+
+def test_a_task_run_on_two_datasets_gets_a_column_for_each_with_its_own_targets(tmp_path):
+    small = {**_results({"gru": [0.75, 0.77], "firp_ensemble": [0.76, 0.78], "oracle": [0.90, 0.91]}),
+             "dataset": "data/robosuite_stack_three.h5", "overrides": {}}
+    large = {**_results({"gru": [0.88, 0.88], "firp_ensemble": [0.90, 0.92], "oracle": [0.99, 0.98]}),
+             "dataset": "data/robosuite_stack_three_workspaceview_2000.h5",
+             "overrides": {"plan_description": "table_sized_clearance_and_heights"}}
+    text = render({"stack_three": [small, large]})
+    head = text.splitlines()[0]
+    assert head.endswith("| firp: robosuite `stack_three` (`robosuite_stack_three`) | firp: robosuite `stack_three` "
+                         "(`robosuite_stack_three_workspaceview_2000`, table_sized_clearance_and_heights) |")
+    rows = {line.split(" | ")[0].strip("| "): line for line in text.splitlines() if line.startswith("| ")}
+    assert rows["GRU"].endswith("| not run yet | not run yet | 0.760 ± 0.014 (2) | 0.880 ± 0.000 (2) |")
+    assert "- FIRP ensemble 0.770 vs the paper's FIRP 0.923 − 0.03 = 0.893: not met" in text
+    assert "- FIRP ensemble 0.910 vs the paper's FIRP 0.923 − 0.03 = 0.893: met" in text
+    assert "- FIRP ensemble 0.910 vs the best non-oracle baseline (gru, 0.880) + 0.02 = 0.900: met" in text
+    assert "**stack_three**, `robosuite_stack_three_workspaceview_2000`, table_sized_clearance_and_heights" in text
+    paths = []
+    for name, results in (("small", small), ("large", large)):
+        paths.append(tmp_path / f"{name}.json")
+        paths[-1].write_text(json.dumps(results))
+    assert main(["--stack-three", *map(str, paths), "--out", str(tmp_path / "t.md")]) == 0
+    assert (tmp_path / "t.md").read_text() == text
+
+
 def _blocks(**z: float) -> dict:
     return {name: {"position": [0.0, 0.0, 0.8 + height], "yaw": 0.0} for name, height in z.items()}
 
