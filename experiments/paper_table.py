@@ -19,6 +19,7 @@ import argparse
 import json
 import statistics
 from pathlib import Path
+from typing import NamedTuple
 
 from firp.evaluate import BASELINES, target_margin
 
@@ -81,44 +82,51 @@ def run_label(results: dict) -> str:
     return f"{label}, {description}" if description else label
 
 
-def firp_columns(runs: dict[str, dict | list[dict]]) -> list[tuple[int, str, dict | None, bool]]:
-    """(paper column, task, its results or None, whether the task has several runs) per firp column."""
+class FirpColumn(NamedTuple):
+    """One firp column: the paper's column it stands beside, its run (None: not run yet) and that run's scores."""
+    paper_column: int
+    task: str
+    results: dict | None
+    scores: dict[str, list[float]]
+    label: str  # what tells the task's runs apart ("" when the task has one)
+
+
+def firp_columns(runs: dict[str, list[dict]]) -> list[FirpColumn]:
+    """A column per run of every task, in the paper's column order and the runs' given order."""
     columns = []
-    for column, (_, task) in enumerate(COLUMNS):
-        listed = runs.get(task)
-        listed = [None] if listed is None else listed if isinstance(listed, list) else [listed]
-        columns += [(column, task, results, len(listed) > 1) for results in listed]
+    for paper_column, (_, task) in enumerate(COLUMNS):
+        listed = runs.get(task) or [None]
+        columns += [FirpColumn(paper_column, task, results, method_scores(results) if results else {},
+                               run_label(results) if len(listed) > 1 else "") for results in listed]
     return columns
 
 
-def render(runs: dict[str, dict | list[dict]]) -> str:
-    """``runs``: robosuite task -> its results.json, or several (a column each, in the order given)."""
+def render(runs: dict[str, list[dict]]) -> str:
+    """``runs``: robosuite task -> its runs' results.json (a column each, in the order given)."""
     columns = firp_columns(runs)
-    scores = [method_scores(results) if results else {} for _, _, results, _ in columns]
     head = ["method"] + [f"paper: MimicGen {name}" for name, _ in COLUMNS] + [
-        f"firp: robosuite `{task}`" + (f" ({run_label(results)})" if several else "")
-        for _, task, results, several in columns]
+        f"firp: robosuite `{c.task}`" + (f" ({c.label})" if c.label else "") for c in columns]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for key, label in ROWS:
         paper = [f"{m:.3f} ± {s:.3f}" for m, s in PAPER[key]] if key in PAPER else [""] * 3
         ours = []
-        for (_, _, results, _), run_scores in zip(columns, scores):
-            if results is None:
+        for c in columns:
+            if c.results is None:
                 ours.append("not run yet")
             elif key == "dvd":
-                ours.append("not run: " + results.get("not_run", {}).get("dvd", "no weights"))
+                ours.append("not run: " + c.results.get("not_run", {}).get("dvd", "no weights"))
             else:
-                ours.append(_cell(run_scores.get(key)))
+                ours.append(_cell(c.scores.get(key)))
         lines.append("| " + " | ".join([label, *paper, *ours]) + " |")
-    lines += ["", "Each firp cell: mean ± std over the repeats (their number in brackets) of the test balanced "
-              "accuracy, `firp evaluate`'s protocol (stratified 80/20 split per repeat, 20% of train for "
-              "validation, every method on the same splits); an empty one, a method its run left out."]
-    for (column, task, results, several), run_scores in zip(columns, scores):
-        if results is not None:
-            name = COLUMNS[column][0]
-            which = f", {run_label(results)}" if several else ""
-            lines += ["", f"**{task}**{which} (nearest to MimicGen {name}): `{results['command']}`", ""]
-            lines += [f"- {line}" for line in targets(column, run_scores)]
+    lines += ["", ("Each firp cell: mean ± std over the repeats (their number in brackets) of the test balanced "
+                   "accuracy, `firp evaluate`'s protocol (stratified 80/20 split per repeat, 20% of train for "
+                   "validation, every method on the same splits); an empty one, a method its run left out.")]
+    for c in columns:
+        if c.results is not None:
+            which = f", {c.label}" if c.label else ""
+            heading = f"**{c.task}**{which} (nearest to MimicGen {COLUMNS[c.paper_column][0]}): `{c.results['command']}`"
+            lines += ["", heading, ""]
+            lines += [f"- {line}" for line in targets(c.paper_column, c.scores)]
     return "\n".join(lines) + "\n"
 
 

@@ -19,7 +19,7 @@ def _results(scores: dict[str, list[float]]) -> dict:
 def test_the_table_puts_firps_numbers_beside_the_papers_and_checks_the_targets(tmp_path):
     results = _results({"a_mlp": [0.6, 0.7], "a_mlp_image": [0.8, 0.9], "gru": [0.84, 0.86], "firp": [0.9, 0.9],
                         "firp_ensemble": [0.91, 0.93], "oracle": [0.96, 0.98]})
-    text = render({"stack_three": results})
+    text = render({"stack_three": [results]})
     rows = {line.split(" | ")[0].strip("| "): line for line in text.splitlines() if line.startswith("| ")}
     assert "| 0.923 ± 0.028 |" in rows["FIRP"] and rows["FIRP"].endswith("| 0.900 ± 0.000 (2) |")
     assert rows["A-MLP"].endswith("| not run yet | not run yet | 0.650 ± 0.071 (2) |")
@@ -37,7 +37,6 @@ def test_the_table_puts_firps_numbers_beside_the_papers_and_checks_the_targets(t
     assert main(["--stack-three", str(path), "--out", str(tmp_path / "t.md")]) == 0
     assert (tmp_path / "t.md").read_text() == text
     assert PAPER["oracle"][1] == (0.981, 0.016)
-
 
 
 def test_a_task_run_on_two_datasets_gets_a_column_for_each_with_its_own_targets(tmp_path):
