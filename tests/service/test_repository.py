@@ -39,8 +39,12 @@ def test_a_swap_under_load_fails_no_request_and_answers_name_the_scoring_version
     for bundle in (tiny_bundle, second_bundle):
         expected[bundle] = float(EnsembleScorer(load_bundle(bundle)).score(image, plan[None]).probabilities[0])
     assert expected[tiny_bundle] != pytest.approx(expected[second_bundle], abs=1e-6)
-    app = create_app(ServiceSettings(bundle=tiny_bundle, **STRICT))
+    # The subject is the swap, not admission: with the default bound on the expected wait (0.1 s),
+    # eight clients on a busy two-core machine are shed (503 overloaded) whenever the load's thread
+    # slows a pass, which is admission doing its job (tests/service/test_admission.py), not a swap failing.
+    app = create_app(ServiceSettings(bundle=tiny_bundle, max_queue_wait_s=0.0, **STRICT))
     answers: list[tuple[int, str | None, float | None]] = []
+    refusals: list[dict] = []
     with ServiceClient(app) as c:
         old = _version(c)
 
@@ -51,6 +55,8 @@ def test_a_swap_under_load_fails_no_request_and_answers_name_the_scoring_version
                 while not stop.is_set():
                     r = await c.client.post("/v1/score", json=body)
                     ok = r.status_code == 200
+                    if not ok:
+                        refusals.append(r.json())
                     answers.append((r.status_code, r.json()["model"]["version"] if ok else None,
                                     r.json()["score"] if ok else None))
 
@@ -72,7 +78,7 @@ def test_a_swap_under_load_fails_no_request_and_answers_name_the_scoring_version
         metrics = c.get("/metrics").text
         v2_meta = c.get("/v2/models/tiny").json()
     assert swap["status"] == 200 and swap["body"]["version"] == new != old, swap
-    assert all(status == 200 for status, _, _ in answers), {s for s, _, _ in answers}
+    assert all(status == 200 for status, _, _ in answers), refusals[:3]
     versions = [v for _, v, _ in answers]
     assert versions[0] == old and versions[-1] == new and set(versions) == {old, new}
     for _, version, score in answers:  # each answer's score is the scoring version's
