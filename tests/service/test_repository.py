@@ -54,11 +54,11 @@ def test_a_swap_under_load_fails_no_request_and_answers_name_the_scoring_version
             async def client() -> None:
                 while not stop.is_set():
                     r = await c.client.post("/v1/score", json=body)
-                    ok = r.status_code == 200
+                    ok, payload = r.status_code == 200, r.json()
                     if not ok:
-                        refusals.append(r.json())
-                    answers.append((r.status_code, r.json()["model"]["version"] if ok else None,
-                                    r.json()["score"] if ok else None))
+                        refusals.append(payload)
+                    answers.append((r.status_code, payload["model"]["version"] if ok else None,
+                                    payload["score"] if ok else None))
 
             async with anyio.create_task_group() as tg:
                 for _ in range(8):
