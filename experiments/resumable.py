@@ -17,7 +17,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-__all__ = ["append_as_done", "drop_torn_tail", "run_seeds"]
+__all__ = ["append_as_done", "append_record", "drop_torn_tail", "run_seeds"]
 
 
 def drop_torn_tail(records: Path) -> None:
@@ -29,6 +29,16 @@ def drop_torn_tail(records: Path) -> None:
     if data and not data.endswith(b"\n"):
         with records.open("r+b") as f:
             f.truncate(data.rfind(b"\n") + 1)
+
+
+def append_record(records: Path, record: dict) -> None:
+    """Append one record to ``records`` (after cutting a torn last line) and flush it: for experiments that
+    run their jobs in this process, one after another."""
+    records.parent.mkdir(parents=True, exist_ok=True)
+    drop_torn_tail(records)
+    with records.open("a") as sink:
+        sink.write(json.dumps(record) + "\n")
+        sink.flush()
 
 
 def append_as_done(records: Path, run: Callable[[Any], dict], jobs: Sequence[Any], *, done: dict[Hashable, dict],

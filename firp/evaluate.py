@@ -49,6 +49,9 @@ METHODS: dict[str, dict] = {
     "geometry_mlp": {"kind": "a_mlp", "baseline": {"plan_pooling": "none"}},
 }
 NEEDS_GEOMETRY = ("geometry_mlp",)
+#: kinds that read every executed frame: on a dataset where most episodes kept only their initial frame they
+#: train and test on the framed episodes of each split
+FRAME_READERS = ("oracle",)
 DEFAULT_METHODS = ("a_mlp", "a_mlp_image", "gru", "firp", "firp_ttc", "firp_atc", "firp_tcr", "oracle")
 #: the FIRP variants whose test scores the per-repeat ensemble row averages
 FIRP_VARIANTS = ("firp", "firp_ttc", "firp_atc", "firp_tcr")
@@ -111,6 +114,9 @@ def evaluate_method(name: str, base: TrainConfig, data: SequenceData, repeat: in
                     progress: bool) -> dict:
     train_idx, valid_idx, test_idx = split_indices(data.labels.numpy(), repeat)
     cfg = method_config(name, replace(base, seed=repeat))
+    if cfg.kind in FRAME_READERS:  # it reads every executed frame: the episodes that kept them
+        framed = data.framed.numpy()
+        train_idx, valid_idx, test_idx = (i[framed[i]] for i in (train_idx, valid_idx, test_idx))
     started = time.perf_counter()
     result = train_model(cfg, data.subset(train_idx), data.subset(valid_idx), checkpoint_dir=run_dir / "checkpoint",
                          progress=progress)
@@ -251,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(args.threads)
     data = load_sequences(args.data, base.model.encoder, args.cache_dir, progress=not args.no_progress)
-    base = base.fit_to_plans(int(data.actions.shape[1]))
+    base = base.fit_to_data(data)
     runs = [(repeat, name) for repeat in range(args.repeats) for name in args.methods]
     done = {run: json.loads(path.read_text()) for run in runs if (path := out / f"{run_name(*run)}.json").exists()}
     todo = [run for run in runs if run not in done and (args.only_repeats is None or run[0] in args.only_repeats)]

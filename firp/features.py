@@ -65,6 +65,82 @@ def cached_features(dataset_path: str | os.PathLike, cfg: EncoderConfig, cache_d
     return np.load(final, mmap_mode="r", allow_pickle=False)
 
 
+def cached_initial_features(dataset_path: str | os.PathLike, cfg: EncoderConfig,
+                            cache_dir: str | os.PathLike = DEFAULT_CACHE_DIR, batch_frames: int = 240,
+                            progress: bool = True, dataset_hash: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """For a dataset whose episodes keep only their initial frame beyond the first few (``firp collect --framed``):
+    features ``(N, Db)`` of every episode's initial frame and ``(N_framed, T, Db)`` of every frame of the framed
+    episodes, float16, memory-mapped, in demo order. Cached, resumable and locked like :func:`cached_features`."""
+    if not cfg.freeze_backbone or cfg.backbone != "efficientnet_lite0":
+        raise ValueError("encoder: only the pretrained, frozen efficientnet_lite0's features can be cached")
+    cache_dir = Path(cache_dir)
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    with EpisodeDataset(dataset_path) as ds:
+        dataset_hash = dataset_hash or ds.content_hash()
+        key = cache_key(dataset_hash, cfg) + "-initial"
+        first_path, framed_path = cache_dir / f"{key}.first.npy", cache_dir / f"{key}.framed.npy"
+        if not (first_path.exists() and framed_path.exists()):
+            with open(cache_dir / f"{key}.lock", "w") as lock:
+                fcntl.flock(lock, fcntl.LOCK_EX)
+                if not (first_path.exists() and framed_path.exists()):
+                    _compute_initial_features(ds, cfg, cache_dir, key, first_path, framed_path, batch_frames,
+                                              progress)
+    return (np.load(first_path, mmap_mode="r", allow_pickle=False),
+            np.load(framed_path, mmap_mode="r", allow_pickle=False))
+
+
+def _compute_initial_features(ds: EpisodeDataset, cfg: EncoderConfig, cache_dir: Path, key: str, first_path: Path,
+                              framed_path: Path, batch_frames: int, progress: bool) -> None:
+    names = ds.demo_names
+    framed = ds.framed_mask()
+    t_len = int(ds.actions(names[0]).shape[0])
+    encoder = ImageEncoder(cfg).eval()
+    partial_first, partial_framed = cache_dir / f"{key}.first.partial.npy", cache_dir / f"{key}.framed.partial.npy"
+    progress_file = cache_dir / f"{key}.progress.json"
+    done = 0
+    if partial_first.exists() and partial_framed.exists() and progress_file.exists():
+        done = int(json.loads(progress_file.read_text())["done"])
+        first = np.load(partial_first, mmap_mode="r+", allow_pickle=False)
+        frames = np.load(partial_framed, mmap_mode="r+", allow_pickle=False)
+    else:
+        first = np.lib.format.open_memmap(partial_first, mode="w+", dtype=np.float16,
+                                          shape=(len(names), encoder.backbone_dim))
+        frames = np.lib.format.open_memmap(partial_framed, mode="w+", dtype=np.float16,
+                                           shape=(int(framed.sum()), t_len, encoder.backbone_dim))
+    row = np.cumsum(framed) - 1  # each framed episode's row in ``frames``
+    bar = tqdm(total=len(names), initial=done, desc=f"features {cfg.backbone}@{cfg.image_size}", unit="ep",
+               disable=not progress)
+    pending: list[int] = []  # initial-only episodes, encoded in batches
+
+    def flush_initial(first: np.ndarray) -> None:
+        if pending:
+            images = np.stack([ds.initial_frame(names[i]) for i in pending])
+            first[pending] = encoder.backbone_features(torch.from_numpy(images)).float().numpy().astype(np.float16)
+            pending.clear()
+
+    with torch.inference_mode():
+        for i in range(done, len(names)):
+            if framed[i]:
+                feats = encoder.backbone_features(torch.from_numpy(ds.frames(names[i])), chunk_size=batch_frames)
+                frames[row[i]] = feats.float().numpy().astype(np.float16)
+                first[i] = frames[row[i], 0]
+            else:
+                pending.append(i)
+            if len(pending) >= batch_frames or (i + 1) % 256 == 0 or i + 1 == len(names):
+                flush_initial(first)  # everything before i + 1 is written: a resumed run starts there
+                first.flush()
+                frames.flush()
+                progress_file.write_text(json.dumps({"done": i + 1, "config": asdict(cfg)}))
+            bar.update(1)
+    bar.close()
+    first.flush()
+    frames.flush()
+    del first, frames
+    os.replace(partial_framed, framed_path)
+    os.replace(partial_first, first_path)
+    progress_file.unlink(missing_ok=True)
+
+
 def _compute_features(ds: EpisodeDataset, cfg: EncoderConfig, cache_dir: Path, key: str, final: Path,
                       batch_frames: int, progress: bool) -> None:
     """Fill ``final`` with the backbone's features of every frame, resuming a partial run."""

@@ -43,7 +43,7 @@ from firp.core.cli_types import int_in_range, non_negative_float, open_unit_floa
 from firp.core.contract import PlanLimits
 from firp.core.decisions import decision_evidence, paired_comparison
 from firp.core.episodes import EpisodeDataset
-from firp.data import SequenceData, load_sequences
+from firp.data import FrameFeatures, SequenceData, load_sequences
 from firp.features import DEFAULT_CACHE_DIR
 from firp.metrics import balanced_accuracy, choose_threshold, expected_calibration_error
 from firp.train import TrainConfig, predict, train_model
@@ -86,9 +86,9 @@ def load_pool(paths: list[Path], bundle, cache_dir: Path, progress: bool) -> Poo
         parts.append(replace(data, demo_names=[f"{path.name}:{n}" for n in data.demo_names]))
         sources.append({"path": os.fspath(path), "sha256": data.dataset_hash, "episodes": len(data),
                         "recorded_episodes": int(sum(from_loop))})
-    joined = SequenceData(torch.cat([p.features for p in parts]), torch.cat([p.actions for p in parts]),
+    joined = SequenceData(FrameFeatures.concat([p.features for p in parts]), torch.cat([p.actions for p in parts]),
                           torch.cat([p.labels for p in parts]), "+".join(p.dataset_hash[:12] for p in parts),
-                          [n for p in parts for n in p.demo_names])
+                          [n for p in parts for n in p.demo_names], parts[0].attrs)
     return Pool(joined, scenes, np.asarray(recorded, dtype=bool), sources, np.asarray(source, dtype=int))
 
 

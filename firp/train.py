@@ -70,6 +70,19 @@ class TrainConfig:
             return self
         return replace(self, model=replace(self.model, baseline=replace(baseline, max_T=horizon)))
 
+    def fit_to_data(self, data: SequenceData) -> "TrainConfig":
+        """This recipe for a dataset: :meth:`fit_to_plans` for its plans' length, and the arm's kinematics from
+        the dataset's attributes where the recipe reads the plan's events and names no chain of its own."""
+        cfg = self.fit_to_plans(int(data.actions.shape[1]))
+        events = cfg.model.events
+        if events.enabled and events.kinematics is None:
+            if "kinematics" not in data.attrs:
+                raise ValueError("events: the recipe reads the plan's events through the arm's kinematics, and the "
+                                 "dataset carries none (collect it with --framed or --view-size, which record them)")
+            events = replace(events, kinematics=data.attrs["kinematics"])
+            cfg = replace(cfg, model=replace(cfg.model, events=events))
+        return cfg
+
     def to_dict(self) -> dict:
         d = asdict(self)
         d["model"] = self.model.to_dict()
@@ -110,22 +123,52 @@ def predict(model: torch.nn.Module, data: SequenceData, batch_size: int = 128) -
 
 
 def _loss(model: torch.nn.Module, cfg: TrainConfig, feats: torch.Tensor, actions: torch.Tensor, labels: torch.Tensor,
-          epoch: int, gen: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]:
+          epoch: int, gen: torch.Generator, framed: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    """The batch's training loss and its terms (for the log). ``framed`` (B,) bool: which episodes kept every
+    frame; the others kept only their initial frame (see :func:`_firp_terms`)."""
     if cfg.kind != "firp":
         out = model.forward_train(feats, actions)
         loss = classification_loss(out["logits"], labels)
         return loss, {"ce": float(loss.detach())}
-    future = epoch >= cfg.e_start_f
-    transitions = -(-actions.shape[1] // model.cfg.action_chunk)  # RSSM steps: ceil(T / k)
-    taus = sample_overshooting_distances(transitions, cfg.overshooting_n, cfg.overshooting_max_tau, gen) \
-        if future and model.cfg.loss.overshooting > 0 else []
-    out = model.forward_train(feats, actions, overshooting_distances=taus, overshooting_stride=cfg.overshooting_stride)
-    terms = firp_loss(out, actions, labels, model.cfg.loss)
-    total = terms["total"]
-    if not future:  # before E_start^f: classification from real features + TCR only
-        weights = loss_weights(model.cfg.loss)
-        total = total - sum(weights[k] * terms[k] for k in FUTURE_TERMS)
+    total, terms = _firp_terms(model, cfg, feats, actions, labels, epoch, gen, framed)
     return total, {k: float(v.detach()) for k, v in terms.items()}
+
+
+def _firp_terms(model: torch.nn.Module, cfg: TrainConfig, feats: torch.Tensor, actions: torch.Tensor,
+                labels: torch.Tensor, epoch: int, gen: torch.Generator, framed: torch.Tensor | None
+                ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """FIRP's objective (eq. 9 + TCR). Episodes that kept only their initial frame classify the open loop from it
+    (:meth:`FIRP.forward_initial`) and add nothing else: the prediction terms and TCR average over the framed
+    episodes, the open loop's classification over all. Before ``e_start_f`` (no future terms, no open loop) they
+    add nothing at all."""
+    future = epoch >= cfg.e_start_f
+    weights = loss_weights(model.cfg.loss)
+    initial = None if framed is None or bool(framed.all()) else ~framed
+    n = int(labels.shape[0])
+    n_initial = int(initial.sum()) if initial is not None else 0
+    terms: dict[str, torch.Tensor] = {}
+    total = labels.new_zeros(())
+    if n_initial < n:
+        rows = slice(None) if initial is None else ~initial
+        f_feats, f_actions, f_labels = feats[rows], actions[rows], labels[rows]
+        transitions = -(-actions.shape[1] // model.cfg.action_chunk)  # RSSM steps: ceil(T / k)
+        taus = sample_overshooting_distances(transitions, cfg.overshooting_n, cfg.overshooting_max_tau, gen) \
+            if future and model.cfg.loss.overshooting > 0 else []
+        out = model.forward_train(f_feats, f_actions, overshooting_distances=taus,
+                                  overshooting_stride=cfg.overshooting_stride)
+        terms = firp_loss(out, f_actions, f_labels, model.cfg.loss)
+        total = terms["total"]
+        if not future:  # before E_start^f: classification from real features + TCR only
+            total = total - sum(weights[k] * terms[k] for k in FUTURE_TERMS)
+    if n_initial and future:
+        ce_initial = classification_loss(model.forward_initial(feats[initial, 0], actions[initial]), labels[initial],
+                                         model.cfg.loss.pos_weight)
+        ce_framed = terms.get("ce_open_loop", ce_initial.new_zeros(()))
+        ce_all = ((n - n_initial) * ce_framed + n_initial * ce_initial) / n
+        total = total + weights["ce_open_loop"] * (ce_all - ce_framed)
+        terms["ce_open_loop"] = ce_all
+    terms["total"] = total
+    return total, terms
 
 
 def _set_projection_trainable(model: torch.nn.Module, trainable: bool) -> None:
@@ -144,6 +187,8 @@ def train_model(cfg: TrainConfig, train: SequenceData, valid: SequenceData, chec
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     model = build_model(cfg.kind, cfg.model)
+    if getattr(model, "requires_future_frames", False) and not (bool(train.framed.all()) and bool(valid.framed.all())):
+        raise ValueError(f"{cfg.kind} reads every executed frame: train and validate it on framed episodes only")
     if hasattr(model, "action_norm"):
         model.action_norm.fit(train.actions)  # training-set statistics, saved with the weights
     if getattr(model, "geometry", None) is not None:
@@ -181,7 +226,10 @@ def train_model(cfg: TrainConfig, train: SequenceData, valid: SequenceData, chec
         batches = 0
         for start in range(0, n, cfg.batch_size):
             idx = order[start:start + cfg.batch_size]
-            loss, terms = _loss(model, cfg, train.features[idx], train.actions[idx], train.labels[idx], epoch, gen)
+            loss, terms = _loss(model, cfg, train.features[idx], train.actions[idx], train.labels[idx], epoch, gen,
+                                train.framed[idx])
+            if not loss.requires_grad:  # only initial-frame episodes before e_start_f: nothing to learn from
+                continue
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"non-finite loss at epoch {epoch}: {terms}")
             optim.zero_grad(set_to_none=True)
@@ -193,7 +241,7 @@ def train_model(cfg: TrainConfig, train: SequenceData, valid: SequenceData, chec
             batches += 1
         probs = predict(model, valid)
         val_ba = balanced_accuracy(valid.labels.numpy() > 0.5, probs >= 0.5)
-        record = {"epoch": epoch, "val_balanced_accuracy": val_ba, **{k: v / batches for k, v in sums.items()}}
+        record = {"epoch": epoch, "val_balanced_accuracy": val_ba, **{k: v / max(batches, 1) for k, v in sums.items()}}
         history.append(record)
         if val_ba > best[0]:
             best = (val_ba, epoch)

@@ -318,7 +318,7 @@ def main(argv: list[str] | None = None) -> int:
     study_name = args.study or f"firp-{args.data.stem}"
     torch.set_num_threads(args.threads)
     data = load_sequences(args.data, base.model.encoder, args.cache_dir, progress=not args.no_progress)
-    base = base.fit_to_plans(int(data.actions.shape[1]))
+    base = base.fit_to_data(data)
     started = time.perf_counter()
     study = run_study(data, base, storage, study_name, args.trials, runs / f"tune-{study_name}",
                       progress=not args.no_progress, space=space, recipe={"preset": args.preset, "overrides": overrides})

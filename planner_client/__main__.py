@@ -128,6 +128,14 @@ def add_collect_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentPars
                    help=f"plan length in steps at 4 FPS (our world; default {DEFAULT_T}); robosuite's tasks have "
                         "their own T (80 stack_three, 100 nut_assembly and nut_assembly_round, 200 pick_place)")
     c.add_argument("--image-size", type=int_in_range("--image-size", 16, 512), default=84)
+    c.add_argument("--framed", type=int_in_range("--framed", 0, 1_000_000), default=None,
+                   help="our world: only episodes 0..N-1 keep a frame per step, the rest their initial frame alone "
+                        "(about a third of the cost; they train what classifies from the initial image, not the "
+                        "RSSM's prediction terms). Default: every episode")
+    c.add_argument("--view-size", type=int_in_range("--view-size", 0, 1024), default=0,
+                   help="our world: > 0 also keeps each episode's initial image at this many pixels square (the "
+                        "plan-conditioned view; 256 reads the stacking blocks at about 1.7 mm per pixel), with the "
+                        "camera's calibration and the arm's kinematics in the dataset's attributes")
     c.add_argument("--camera", default=None,
                    help="the robosuite world's camera of the images (default agentview; stack_three also has "
                         "workspaceview, a close view of the cubes)")
@@ -152,6 +160,8 @@ def collect_command(args: argparse.Namespace, parser: argparse.ArgumentParser, a
     if args.camera is not None and args.world != "robosuite":
         parser.error("--camera: our world's camera is fixed per task (sim_worker.scene); --camera is the robosuite "
                      "world's")
+    if args.world == "robosuite" and (args.framed is not None or args.view_size):
+        parser.error("--framed/--view-size: our world's collection only, so far")
     if args.world == "robosuite":
         balance = _collect_robosuite(args, parser, argv)
     else:
@@ -161,7 +171,8 @@ def collect_command(args: argparse.Namespace, parser: argparse.ArgumentParser, a
         error = PoseErrorConfig.from_mm_deg(args.pose_error_mm, args.pose_error_deg)
         config = CollectConfig(task=args.task, episodes=args.episodes, out=args.out, workers=args.workers,
                                seed_offset=args.seed_offset, horizon=args.horizon or DEFAULT_T,
-                               image_size=args.image_size, pose_error=error)
+                               image_size=args.image_size, pose_error=error, framed=args.framed,
+                               view_size=args.view_size)
         balance = collect(config, progress=not args.no_progress, ray=args.ray)
     print(f"{args.out}: {balance['total']} episodes, {balance['success']} success / {balance['failure']} failure "
           f"(success rate {balance['success_rate']:.3f}); {balance['new_episodes']} new in {balance['seconds']} s")

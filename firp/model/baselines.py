@@ -35,7 +35,7 @@ from firp.model.encoder import FeatureProjection
 from firp.model.firp import FIRP, Score, first_step
 from firp.model.head import SuccessHead
 from firp.model.ops import last_valid_index
-from firp.model.plan_geometry import build_plan_geometry, plan_context
+from firp.model.plan_events import build_plan_reader, read_plan
 
 __all__ = ["AMLP", "AMLPImage", "GRUBaseline", "MODEL_KINDS", "ModelKind", "Oracle", "build_model", "plan_vector"]
 
@@ -77,9 +77,9 @@ class _PlanMLP(nn.Module):
         self.cfg = cfg
         b = cfg.baseline
         d_plan = {"flatten": cfg.action_dim * b.max_T, "mean": cfg.action_dim, "none": 0}[b.plan_pooling]
-        if b.plan_pooling == "none" and not cfg.geometry.enabled:
-            raise ValueError("baseline.plan_pooling='none' leaves the MLP no input: enable geometry")
-        self.geometry = build_plan_geometry(cfg.geometry)
+        if b.plan_pooling == "none" and not (cfg.geometry.enabled or cfg.events.enabled):
+            raise ValueError("baseline.plan_pooling='none' leaves the MLP no input: enable geometry or events")
+        self.geometry = build_plan_reader(cfg)
         d_geometry = self.geometry.dim if self.geometry is not None else 0
         self.mlp = _mlp3(d_plan + d_geometry + extra_dim, b.hidden)
         self.action_norm = ActionNormalizer(cfg.action_dim)
@@ -148,8 +148,8 @@ class GRUBaseline(nn.Module):
         self.init = nn.Linear(E + A, Hg)
         self.gru = nn.GRU(A, Hg, batch_first=True)
         self.readout = nn.Linear(Hg, E)
-        self.geometry = build_plan_geometry(cfg.geometry)
-        self.head = SuccessHead.with_geometry(cfg, E, self.geometry)
+        self.geometry = build_plan_reader(cfg)
+        self.head = SuccessHead.with_plan_reader(cfg, E, self.geometry)
         self.action_norm = ActionNormalizer(A)
 
     def _predict(self, e1: Tensor, actions: Tensor) -> Tensor:
@@ -165,12 +165,12 @@ class GRUBaseline(nn.Module):
         """``features`` (B, T, Db): frame 0 drives the prediction, all frames give targets ``e``."""
         e = self.projection(features)  # (B, T, E)
         seq = self._predict(e[:, 0], actions)
-        logits, weights = self.head(seq, mask, plan_context(self.geometry, actions, mask))
+        logits, weights = self.head(seq, mask, read_plan(self.geometry, actions, mask))
         return {"logits": logits, "weights": weights, "features_pred": seq, "e": e}
 
     def score(self, features: Tensor, actions: Tensor, mask: Tensor | None = None) -> Score:
         seq = self._predict(self.projection(first_step(features)), actions)
-        logits, weights = self.head(seq, mask, plan_context(self.geometry, actions, mask))
+        logits, weights = self.head(seq, mask, read_plan(self.geometry, actions, mask))
         return Score(logits, weights, seq)
 
 

@@ -174,6 +174,39 @@ class GeometryConfig:
 
 
 @dataclass(frozen=True)
+class PlanEventsConfig:
+    """The plan's events read through the arm's kinematics by a relation network (:mod:`firp.model.plan_events`):
+    the generic reading of what the plan says about the scene, with no task's sizes in it.
+
+    Off by default (the paper's models read the plan only as per-step joint targets). On, every plan-reading
+    model gets the plan's learned event vector: FIRP and the GRU baseline in their success head beside the
+    pooled sequence, the MLP baselines in their input. ``kinematics`` is the arm's chain
+    (:class:`firp.core.kinematics.KinematicChain` as a dict), filled in from the dataset a recipe trains on.
+    """
+
+    enabled: bool = False
+    max_events: int = 24
+    hidden: int = 64
+    kinematics: dict | None = None
+    #: the plan-conditioned view (:mod:`firp.model.plan_view`): each event also reads a hand-aligned crop of the
+    #: initial image at the view's resolution, ``view_window`` metres wide at ``view_crop`` pixels
+    view: bool = False
+    view_crop: int = 48
+    view_window: float = 0.08
+    view_dim: int = 32
+
+    def __post_init__(self) -> None:
+        _positive("max_events", self.max_events)
+        _positive("hidden", self.hidden)
+        _positive("view_window", self.view_window)
+        _positive("view_dim", self.view_dim)
+        if self.view_crop < 16:
+            raise ValueError(f"events.view_crop: a crop needs >= 16 pixels (four stride-2 stages), got {self.view_crop}")
+        if self.kinematics is not None and not isinstance(self.kinematics, dict):
+            raise ValueError(f"events.kinematics: must be a kinematic chain as a dict, got {type(self.kinematics).__name__}")
+
+
+@dataclass(frozen=True)
 class BaselineConfig:
     """Baselines of the paper (A-MLP, A-MLP+image, GRU, Oracle).
 
@@ -273,12 +306,16 @@ class FIRPConfig:
     baseline: BaselineConfig = field(default_factory=BaselineConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
+    events: PlanEventsConfig = field(default_factory=PlanEventsConfig)
     action_dim: int = PLAN_WIDTH
     action_chunk: int = 1
 
     def __post_init__(self) -> None:
         _positive("action_dim", self.action_dim)
         _positive("action_chunk", self.action_chunk)
+        if self.geometry.enabled and self.events.enabled:
+            raise ValueError("geometry and events: a model reads the plan's hand-built description or its learned "
+                             "events, not both")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain nested dict (JSON-able) for manifests."""
@@ -290,6 +327,7 @@ class FIRPConfig:
         parts = {
             "encoder": EncoderConfig, "rssm": RSSMConfig, "head": HeadConfig,
             "baseline": BaselineConfig, "loss": LossConfig, "geometry": GeometryConfig,
+            "events": PlanEventsConfig,
         }
         known = {f.name for f in fields(cls)}
         unknown = set(data) - known

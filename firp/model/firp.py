@@ -18,7 +18,7 @@ from firp.model.encoder import FeatureProjection, ImageEncoder
 from firp.model.head import SuccessHead
 from firp.model.normalize import ActionNormalizer
 from firp.model.ops import plan_categories
-from firp.model.plan_geometry import build_plan_geometry, plan_context
+from firp.model.plan_events import build_plan_reader, read_plan
 from firp.model.rssm import RSSM
 
 __all__ = ["FIRP", "Score", "chunk_actions", "chunk_frame_index", "first_step", "spread_chunk_weights"]
@@ -79,9 +79,10 @@ class FIRP(nn.Module):
         E = cfg.encoder.feature_dim
         self.projection = FeatureProjection(cfg.encoder)
         self.rssm = RSSM(cfg.rssm, E, cfg.action_dim * cfg.action_chunk)
-        # the plan's grasp-frame description beside the pooled sequence (off: the paper's head)
-        self.geometry = build_plan_geometry(cfg.geometry)
-        self.head = SuccessHead.with_geometry(cfg, E, self.geometry)
+        # what the plan says about the scene beside the pooled sequence: the hand-built description or the learned
+        # events (off: the paper's head)
+        self.geometry = build_plan_reader(cfg)
+        self.head = SuccessHead.with_plan_reader(cfg, E, self.geometry)
         self.action_norm = ActionNormalizer(cfg.action_dim)
 
     def image_encoder(self) -> ImageEncoder:
@@ -118,7 +119,7 @@ class FIRP(nn.Module):
         """
         k = self.cfg.action_chunk
         categories = plan_categories(actions)  # (B, T)
-        context = plan_context(self.geometry, actions, mask)  # (B, G) or None, from the raw plan
+        context = read_plan(self.geometry, actions, mask)  # (B, G) or None, from the raw plan
         if k > 1:  # one transition per chunk of k plan steps; observe each chunk's frame
             index = torch.tensor(chunk_frame_index(actions.shape[1], k), device=features.device)
             features, categories = features[:, index], categories[:, index]  # (B, Tc, Db), (B, Tc)
@@ -158,6 +159,24 @@ class FIRP(nn.Module):
             **({"logits_description": self.head.description_logit(context)} if context is not None else {}),
         }
 
+    def forward_initial(self, first_features: Tensor, actions: Tensor, mask: Tensor | None = None,
+                        sample: bool = True) -> Tensor:
+        """Training logits ``(B,)`` of episodes that kept only their initial frame: the open loop of
+        :meth:`forward_train` (the classification inference runs), from ``first_features`` (B, Db) alone. As
+        there, the RSSM reads ``e_1`` without a gradient into the projection when ``stop_target_gradient``,
+        the head reads it with one, and the rollout samples when ``cfg.loss.open_loop_sample``."""
+        k, T = self.cfg.action_chunk, actions.shape[1]
+        context = read_plan(self.geometry, actions, mask)  # (B, G) or None
+        if k > 1 and mask is not None:
+            mask = mask[:, torch.tensor(chunk_frame_index(T, k), device=mask.device)]
+        e1 = self.projection(first_step(first_features))  # (B, E)
+        e1_in = e1.detach() if self.cfg.loss.stop_target_gradient else e1
+        roll = self.rssm.rollout_from_first(e1_in, chunk_actions(self.action_norm(actions), k),
+                                            sample=sample and self.cfg.loss.open_loop_sample)
+        seq = torch.cat([e1.unsqueeze(1), roll["features"][:, 1:]], dim=1)  # (B, Tc, E)
+        logits, _ = self.head(seq, mask, context)
+        return logits
+
     def score(
         self, first_features: Tensor, actions: Tensor, mask: Tensor | None = None, sample: bool = False
     ) -> Score:
@@ -168,7 +187,7 @@ class FIRP(nn.Module):
         the means, so one plan always gets one score.
         """
         k, T = self.cfg.action_chunk, actions.shape[1]
-        context = plan_context(self.geometry, actions, mask)  # (B, G) or None
+        context = read_plan(self.geometry, actions, mask)  # (B, G) or None
         if k > 1 and mask is not None:
             mask = mask[:, torch.tensor(chunk_frame_index(T, k), device=mask.device)]
         e1 = self.projection(first_step(first_features))  # (B, E)

@@ -59,6 +59,14 @@ class SuccessHead(nn.Module):
         return cls(cfg.head, feature_dim, context_dim=geometry.dim if geometry is not None else 0,
                    context_hidden=cfg.geometry.hidden, context_layers=cfg.geometry.layers)
 
+    @classmethod
+    def with_plan_reader(cls, cfg: FIRPConfig, feature_dim: int, reader: nn.Module | None) -> SuccessHead:
+        """The head of a model whose plan reader (:func:`firp.model.plan_events.build_plan_reader`: the hand-built
+        description or the learned events, or None) gives its context."""
+        if reader is None or cfg.geometry.enabled:
+            return cls.with_geometry(cfg, feature_dim, reader)
+        return cls(cfg.head, feature_dim, context_dim=reader.dim, context_hidden=cfg.events.hidden)
+
     def attention(self, q: Tensor, mask: Tensor | None = None) -> Tensor:
         """Eq. (5): ``q`` (B, T, Q) -> ``w`` (B, T), rows sum to 1 over the valid steps."""
         cos = torch.einsum("mq,btq->bmt", safe_unit(self.prototypes), safe_unit(q))  # (B, M, T)

@@ -30,6 +30,7 @@ from torch import Tensor, nn
 
 from firp.model.firp import FIRP, chunk_actions, spread_chunk_weights
 from firp.model.ops import safe_unit
+from firp.model.plan_events import PlanEvents
 from firp.model.plan_geometry import standardise
 
 __all__ = ["SCENES", "FusedFIRP"]
@@ -120,9 +121,12 @@ class FusedFIRP:
         m0 = models[0]
         if not all(isinstance(m, FIRP) for m in models):
             raise TypeError("only FIRP members are fused")
-        if len({m.geometry is None for m in models}) != 1:
-            raise TypeError("fused members must all read the plan's grasp-frame description, or none")
-        described = [m.geometry for m in models if m.geometry is not None]
+        if len({type(m.geometry) for m in models}) != 1:
+            raise TypeError("fused members must all read the plan alike: the hand-built description, the learned "
+                            "events, or none")
+        if any(isinstance(m.geometry, PlanEvents) and m.geometry.view is not None for m in models):
+            raise TypeError("members that read the plan-conditioned view are not fused")
+        described = [m.geometry for m in models if m.geometry is not None and not isinstance(m.geometry, PlanEvents)]
         if len({(g.max_picks, g.description, g.object_half) for g in described}) > 1:
             raise TypeError("fused members must describe the plan alike (max_picks, description, object_half)")
         if len({isinstance(m.head.context, nn.Linear) for m in models if m.head.context is not None}) > 1:
@@ -172,12 +176,15 @@ class FusedFIRP:
             self.prototypes = torch.stack([safe_unit(m.head.prototypes) for m in models])  # (M, P, Q)
             self.w_out = _stack_t([m.head.out.weight for m in models])  # (M, Q [+ Hc], 1)
             self.b_out = _stack_b([m.head.out.bias for m in models])
-            # the head's context: the plan's grasp-frame description, standardised per member, through an MLP
-            # the members describe plans alike (checked above): one of them computes it for all
-            self.describe = m0.geometry.describe if m0.geometry is not None else None
+            # the head's context: the plan's grasp-frame description, standardised per member (the members describe
+            # plans alike, checked above: one of them computes it for all), or each member's learned events; then
+            # each member's MLP
+            self.events = [m.geometry for m in models] if isinstance(m0.geometry, PlanEvents) else None
+            self.describe = m0.geometry.describe if m0.geometry is not None and self.events is None else None
             if self.describe is not None:
                 self.g_mean = torch.stack([m.geometry.mean for m in models])[:, None, :]  # (M, 1, G)
                 self.g_std = torch.stack([m.geometry.std for m in models])[:, None, :]
+            if m0.geometry is not None:
                 one_layer = isinstance(m0.head.context, nn.Linear)  # GeometryConfig.layers == 1
                 c1 = [m.head.context if one_layer else _linear_parts(m.head.context)[0] for m in models]
                 self.w_c1, self.b_c1 = _stack_t([l.weight for l in c1]), _stack_b([l.bias for l in c1])
@@ -236,8 +243,11 @@ class FusedFIRP:
         cos = torch.einsum("mpq,mntq->mnpt", self.prototypes, safe_unit(q))  # (M, N, P, Tc)
         w = torch.softmax(cos / self.temperature, dim=-1).mean(dim=2)  # (M, N, Tc)
         pooled = torch.einsum("mnt,mntq->mnq", w, q)
-        if self.describe is not None:  # the description is computed once for every member
-            z = standardise(self.describe(actions).unsqueeze(0), self.g_mean, self.g_std)  # (M, N, G)
+        if self.describe is not None or self.events is not None:
+            if self.describe is not None:  # the description is computed once for every member
+                z = standardise(self.describe(actions).unsqueeze(0), self.g_mean, self.g_std)  # (M, N, G)
+            else:  # each member's own learned reading of the plan
+                z = torch.stack([events(actions) for events in self.events])  # (M, N, C)
             c = torch.baddbmm(self.b_c1, z, self.w_c1)  # (M, N, Hc)
             if self.w_c2 is not None:
                 c = torch.baddbmm(self.b_c2, torch.relu(c), self.w_c2)

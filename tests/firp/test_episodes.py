@@ -263,9 +263,11 @@ def test_stale_output_temp_is_cleaned(tmp_path: Path) -> None:
         (lambda r: setattr(r, "success", 1), EpisodeValidationError, "bool"),
         (lambda r: r.attrs.__setitem__("success", True), EpisodeValidationError, "reserved"),
         (lambda r: r.attrs.__setitem__("obj", object()), EpisodeValidationError, "cannot be stored"),
+        (lambda r: setattr(r, "view", np.zeros((2, 8, 8, 3), np.uint8)), EpisodeValidationError, "one uint8 RGB"),
+        (lambda r: setattr(r, "view", np.zeros((8, 8, 3), np.float32)), EpisodeValidationError, "one uint8 RGB"),
     ],
     ids=["width", "one_hot", "float_frames", "gray_frames", "frames_T", "states_T", "states_1d", "int_label",
-         "reserved_attr", "object_attr"],
+         "reserved_attr", "object_attr", "two_views", "float_view"],
 )
 def test_invalid_records_are_refused_before_writing(tmp_path: Path, change, error, match) -> None:
     rec = make_record(0)
@@ -323,3 +325,27 @@ def test_nothing_to_consolidate(tmp_path: Path) -> None:
     with pytest.raises(EpisodeValidationError, match="nothing to consolidate"):
         consolidate(tmp_path / "parts", tmp_path / "ds.hdf5", DATASET_ATTRS)
     assert part_path(tmp_path, 7).name == "demo_000007.h5"
+
+
+def test_episodes_with_only_their_initial_frame_and_a_view_read_back(tmp_path: Path) -> None:
+    """``firp collect --framed --view-size``: some episodes keep one frame, every one its view; reading tells which."""
+    parts = tmp_path / "parts"
+    for index in range(3):
+        rec = make_record(index)
+        if index > 0:
+            rec.frames = rec.frames[:1].copy()
+        rec.view = np.full((16, 16, 3), index, np.uint8)
+        write_episode_part(parts, index, rec)
+    consolidate(parts, tmp_path / "ds.hdf5", DATASET_ATTRS)
+    with EpisodeDataset(tmp_path / "ds.hdf5") as ds:
+        assert ds.framed_mask().tolist() == [True, False, False] and ds.has_view
+        assert ds.frames(1).shape == (1, H, W, 3) and ds.view(2).shape == (16, 16, 3) and ds.view(2)[0, 0, 0] == 2
+        np.testing.assert_array_equal(ds.initial_frame(0), ds.frames(0)[0])
+        assert ds.episode(1).view.shape == (1, 16, 16, 3)
+        hash_with_views = ds.content_hash()
+    odd = make_record(3)
+    odd.view = np.zeros((8, 8, 3), np.uint8)  # another view size
+    write_episode_part(parts, 3, odd)
+    with pytest.raises(EpisodeValidationError, match="view"):
+        consolidate(parts, tmp_path / "ds.hdf5", DATASET_ATTRS)
+    assert hash_with_views

@@ -92,3 +92,36 @@ def test_a_randomly_initialised_backbone_is_never_cached(tiny_dataset, tmp_path)
     with pytest.raises(ValueError, match="encoder.backbone: only the pretrained efficientnet_lite0"):
         cached_features(tiny_dataset, EncoderConfig(backbone="small_cnn", image_size=32), tmp_path, progress=False)
     shutil.rmtree(tmp_path)
+
+
+def test_a_dataset_of_initial_frames_caches_them_and_the_framed_episodes_every_frame(tiny_dataset, tmp_path,
+                                                                                      monkeypatch):
+    """``firp collect --framed``: features of every initial frame and of every frame of the framed episodes, equal
+    to the backbone's; a killed run resumes; load_sequences serves both through FrameFeatures."""
+    from firp.core.episodes import EpisodeDataset as Dataset
+    from firp.data import load_sequences
+    from firp.features import cached_initial_features
+
+    parts = tmp_path / "parts"
+    with Dataset(tiny_dataset) as ds:
+        for i, name in enumerate(ds.demo_names):
+            record = ds.episode(name)
+            if i % 3:  # episodes 0, 3, 6, ... keep every frame
+                record.frames = record.frames[:1].copy()
+            write_episode_part(parts, i, record)
+    mixed = tmp_path / "mixed.h5"
+    consolidate(parts, mixed, {"fps": 4, "T": 10, "task": "stacking"})
+    direct = _direct(tiny_dataset)
+    counter = CountingBackbone(monkeypatch, fail_at=3)
+    with pytest.raises(KeyboardInterrupt):
+        cached_initial_features(mixed, CFG, tmp_path / "cache", batch_frames=4, progress=False)
+    first, framed = cached_initial_features(mixed, CFG, tmp_path / "cache", batch_frames=4, progress=False)
+    assert counter.calls < 20  # resumed, not redone from the start
+    assert first.shape == (20, CFG.backbone_dim) and framed.shape == (7, 10, CFG.backbone_dim)
+    np.testing.assert_allclose(first.astype(np.float32), direct[:, 0], rtol=2e-3, atol=2e-3)
+    np.testing.assert_allclose(framed.astype(np.float32), direct[::3], rtol=2e-3, atol=2e-3)
+    data = load_sequences(mixed, CFG, tmp_path / "cache", progress=False)
+    assert data.framed.tolist() == [i % 3 == 0 for i in range(20)]
+    np.testing.assert_allclose(data.features[torch.tensor([3])][0].numpy(), direct[3], rtol=2e-3, atol=2e-3)
+    np.testing.assert_allclose(data.features[torch.tensor([4])][0].numpy(), np.repeat(direct[4, :1], 10, 0),
+                               rtol=2e-3, atol=2e-3)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+import firp.model.firp
 import firp.train
 
 from firp.data import SequenceData, stratified_split
@@ -119,3 +120,67 @@ def test_a_recipe_fitted_to_longer_plans_flattens_them(kind, splits):
     fitted = short.fit_to_plans(T)
     assert fitted.model.baseline.max_T == T and fitted.fit_to_plans(T - 8) is fitted
     assert len(train_model(fitted, train, valid, progress=False).history) == 1
+
+
+def initial_only(data: SequenceData, keep_frames: int) -> SequenceData:
+    """``data`` as a ``firp collect --framed`` dataset: the first ``keep_frames`` episodes framed, the rest with their
+    initial frame alone."""
+    from firp.data import FrameFeatures
+
+    full = data.features[torch.arange(len(data))]
+    row = torch.where(torch.arange(len(data)) < keep_frames, torch.arange(len(data)), torch.tensor(-1))
+    return SequenceData(FrameFeatures(full[:, 0], full[:keep_frames], row), data.actions, data.labels, "mixed",
+                        data.demo_names)
+
+
+def test_frame_features_index_like_the_tensor_they_stand_for():
+    data = micro_data(12)
+    full = data.features[torch.arange(12)]
+    mixed = initial_only(data, 5).features
+    assert mixed.shape == (12, T, DB) and mixed.framed.tolist() == [True] * 5 + [False] * 7
+    idx = torch.tensor([7, 1, 4, 9])
+    got = mixed[idx]
+    torch.testing.assert_close(got[1], full[1]) and torch.testing.assert_close(got[2], full[4])
+    torch.testing.assert_close(got[0], full[7, :1].expand(T, DB))  # an initial-only row repeats frame 0
+    torch.testing.assert_close(mixed[idx, 0], full[idx, 0])
+    sub = mixed.subset(torch.tensor([9, 4, 2]))
+    assert sub.framed.tolist() == [False, True, True] and sub.frames.shape[0] == 2
+    torch.testing.assert_close(sub[torch.arange(3)][2], full[2])
+    from firp.data import FrameFeatures
+
+    both = FrameFeatures.concat([sub, mixed.subset(torch.tensor([3]))])
+    assert both.framed.tolist() == [False, True, True, True]
+    torch.testing.assert_close(both[torch.tensor([3])][0], full[3])
+
+
+def test_episodes_with_only_their_initial_frame_train_firp_s_open_loop(monkeypatch):
+    """FIRP trains on a mixed set: framed episodes give every term, the others the open loop's classification
+    through forward_initial; the Oracle, which reads every frame, is refused such episodes."""
+    data = initial_only(micro_data(48), 12)
+    rest, valid = stratified_split(data.labels.numpy(), 0.25, seed=0)
+    train, valid = data.subset(rest), data.subset(valid)
+    seen: list[int] = []
+    real = firp.model.firp.FIRP.forward_initial
+
+    def spy(self, first, actions, *args, **kwargs):
+        assert first.ndim == 2  # the initial frame alone
+        seen.append(int(first.shape[0]))
+        return real(self, first, actions, *args, **kwargs)
+
+    monkeypatch.setattr(firp.model.firp.FIRP, "forward_initial", spy)
+    result = train_model(config(epochs=2), train, valid, progress=False)
+    assert sum(seen) == 2 * int((~train.framed).sum())  # every initial-only episode, every epoch
+    assert {"ce_open_loop", "kl", "total"} <= set(result.history[-1])
+    with pytest.raises(ValueError, match="framed episodes only"):
+        train_model(config(kind="oracle", epochs=1), train, valid, progress=False)
+
+
+def test_a_recipe_reading_the_events_takes_the_kinematics_from_the_dataset():
+    from firp.model.config import PlanEventsConfig
+
+    data = micro_data(8)
+    cfg = config(model=replace(TINY, events=PlanEventsConfig(enabled=True)))
+    with pytest.raises(ValueError, match="carries none"):
+        cfg.fit_to_data(data)
+    data.attrs["kinematics"] = {"format": "firp-serial-chain-v1"}
+    assert cfg.fit_to_data(data).model.events.kinematics == {"format": "firp-serial-chain-v1"}

@@ -37,6 +37,29 @@ def test_tiny_collection_reads_back(tmp_path):
     assert not (tmp_path / "stacking.h5.parts").exists()
 
 
+def test_a_collection_keeps_frames_of_the_first_episodes_a_view_of_all_and_the_same_labels(tmp_path):
+    """``--framed 1 --view-size 48``: episode 0 keeps every frame, episode 1 its initial frame alone; both keep the
+    view, and the dataset the arm's kinematics and the camera's calibration. Rendering changes no outcome: the
+    labels and plans equal a collection that keeps every frame."""
+    from firp.core.camera import CameraCalibration
+    from firp.core.kinematics import KinematicChain
+
+    out, full = tmp_path / "mixed.h5", tmp_path / "full.h5"
+    collect(CollectConfig(task="stacking", episodes=2, out=out, framed=1, view_size=48, **TINY), progress=False)
+    collect(CollectConfig(task="stacking", episodes=2, out=full, **TINY), progress=False)
+    with EpisodeDataset(out) as ds, EpisodeDataset(full) as reference:
+        assert ds.framed_mask().tolist() == [True, False] and ds.has_view
+        assert ds.frames(1).shape == (1, 24, 24, 3) and ds.view(1).shape == (48, 48, 3)
+        np.testing.assert_array_equal(ds.frames(1)[0], reference.frames(1)[0])  # the same initial image
+        np.testing.assert_array_equal(ds.success_labels(), reference.success_labels())
+        for name in ds.demo_names:
+            np.testing.assert_array_equal(ds.actions(name), reference.actions(name))
+        attrs = ds.attrs
+        assert attrs["framed_episodes"] == 1 and attrs["view_size"] == 48 and "kinematics" not in reference.attrs
+        assert len(KinematicChain.from_dict(attrs["kinematics"])) == 7
+        assert CameraCalibration.from_dict(attrs["camera_calibration"]).width == 24
+
+
 def test_collection_resumes_without_redoing_episodes(tmp_path):
     out = tmp_path / "replacement.h5"
     collect(CollectConfig(task="replacement", episodes=2, out=out, **TINY), progress=False)

@@ -25,6 +25,7 @@ exactly those and a plain string that happens to look like JSON stays a string.
 
 from firp.core.episodes.layout import (
     IMAGE_KEY,
+    VIEW_KEY,
     AttrValue,
     EpisodeRecord,
     EpisodeValidationError,
@@ -48,6 +49,7 @@ __all__ = [
     "EpisodeRecord",
     "EpisodeValidationError",
     "IMAGE_KEY",
+    "VIEW_KEY",
     "completed_indices",
     "completed_part_indices",
     "consolidate",

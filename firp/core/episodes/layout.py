@@ -19,6 +19,9 @@ AttrValue = Union[str, int, float, bool, list, dict]
 
 #: The robomimic observation key of the camera frames.
 IMAGE_KEY = "agentview_image"
+#: The observation key of the initial image at the view's (higher) resolution, ``(1, H, W, 3)``: what the
+#: plan-conditioned view reads, through the dataset's ``camera_calibration`` (optional).
+VIEW_KEY = "view_image"
 #: Attribute listing which attributes of an object hold JSON-encoded containers.
 JSON_ATTRS_KEY = "_json_attrs"
 #: Per-demo attributes written by this module; a record's own attrs may not use these names.
@@ -43,9 +46,12 @@ class EpisodeValidationError(ValueError):
 class EpisodeRecord:
     """One episode: what the camera saw, the plan that was executed, the sim states and the label.
 
-    ``frames`` uint8 ``(T, H, W, 3)``; ``actions`` float32 ``(T, 16)`` (a contract plan);
-    ``states`` float64 ``(T, S)`` (MuJoCo qpos/qvel etc., for replay); ``success`` the label the
-    model learns; ``attrs`` metadata (task, seed, block order, pose estimates, ...).
+    ``frames`` uint8 ``(T, H, W, 3)``, or ``(1, H, W, 3)`` for an episode that kept only its initial image
+    (cheap to collect: enough to train what classifies from the initial image, not the RSSM's
+    prediction terms); ``actions`` float32 ``(T, 16)`` (a contract plan); ``states`` float64 ``(T, S)``
+    (MuJoCo qpos/qvel etc., for replay); ``success`` the label the model learns; ``attrs`` metadata
+    (task, seed, block order, pose estimates, ...); ``view`` optionally the initial image at a higher
+    resolution, uint8 ``(1, H', W', 3)``.
     """
 
     frames: np.ndarray
@@ -53,6 +59,7 @@ class EpisodeRecord:
     states: np.ndarray
     success: bool
     attrs: dict[str, AttrValue] = field(default_factory=dict)
+    view: np.ndarray | None = None
 
     @property
     def num_samples(self) -> int:
@@ -232,10 +239,18 @@ def validate_record(record: EpisodeRecord, limits: PlanLimits = PlanLimits()) ->
     except TypeError:
         raise EpisodeValidationError(f"states must be numeric, got dtype {states.dtype}") from None
 
-    if not frames.shape[0] == t == states.shape[0]:
+    if not t == states.shape[0] or frames.shape[0] not in (1, t):
         raise EpisodeValidationError(
-            f"T must agree: frames have {frames.shape[0]} steps, actions {t}, states {states.shape[0]}"
+            f"T must agree: frames have {frames.shape[0]} steps (T, or 1: the initial image only), actions {t}, "
+            f"states {states.shape[0]}"
         )
+    view = None
+    if record.view is not None:
+        view = np.asarray(record.view)
+        if view.ndim == 3:
+            view = view[None]
+        if view.dtype != np.uint8 or view.ndim != 4 or view.shape[0] != 1 or view.shape[-1] != 3 or 0 in view.shape:
+            raise EpisodeValidationError(f"view must be one uint8 RGB image (1, H, W, 3), got {view.dtype} {view.shape}")
     if not isinstance(record.success, (bool, np.bool_)):
         raise EpisodeValidationError(f"success must be a bool, got {type(record.success).__name__}")
 
@@ -246,6 +261,7 @@ def validate_record(record: EpisodeRecord, limits: PlanLimits = PlanLimits()) ->
         if not isinstance(key, str) or not key or "/" in key:
             raise EpisodeValidationError(f"attribute names must be non-empty str without '/', got {key!r}")
         attrs[key] = normalize_attr(key, value)
-    return EpisodeRecord(frames=frames, actions=actions, states=states, success=bool(record.success), attrs=attrs)
+    return EpisodeRecord(frames=frames, actions=actions, states=states, success=bool(record.success), attrs=attrs,
+                         view=view)
 
 

@@ -15,6 +15,7 @@ from firp.core.episodes.layout import (
     HASH_BLOCK_FRAMES,
     IMAGE_KEY,
     RESERVED_DEMO_ATTRS,
+    VIEW_KEY,
     EpisodeRecord,
     EpisodeValidationError,
     demo_index,
@@ -92,6 +93,32 @@ class EpisodeDataset:
         """Camera frames, uint8 ``(T, H, W, 3)``."""
         return self._data[self._resolve(name_or_index)]["obs"][IMAGE_KEY][()]
 
+    def initial_frame(self, name_or_index: str | int) -> np.ndarray:
+        """The initial camera frame I_1, uint8 ``(H, W, 3)`` (every episode has it)."""
+        return self._data[self._resolve(name_or_index)]["obs"][IMAGE_KEY][0]
+
+    def is_framed(self, name_or_index: str | int) -> bool:
+        """Whether the episode kept a frame per step (else only its initial frame)."""
+        demo = self._data[self._resolve(name_or_index)]
+        return int(demo["obs"][IMAGE_KEY].shape[0]) == int(demo.attrs["num_samples"])
+
+    def framed_mask(self) -> np.ndarray:
+        """:meth:`is_framed` of every episode in :attr:`demo_names` order, bool ``(N,)`` (no image reads)."""
+        return np.array([int(self._data[n]["obs"][IMAGE_KEY].shape[0]) == int(self._data[n].attrs["num_samples"])
+                         for n in self._names], dtype=bool)
+
+    @property
+    def has_view(self) -> bool:
+        """Whether the episodes carry the initial image at the view's resolution (:data:`VIEW_KEY`)."""
+        return bool(self._names) and VIEW_KEY in self._data[self._names[0]]["obs"]
+
+    def view(self, name_or_index: str | int) -> np.ndarray:
+        """The initial image at the view's resolution, uint8 ``(H', W', 3)``."""
+        obs = self._data[self._resolve(name_or_index)]["obs"]
+        if VIEW_KEY not in obs:
+            raise KeyError(f"{self.path} has no view image ({VIEW_KEY}): collect it with --view-size")
+        return obs[VIEW_KEY][0]
+
     def actions(self, name_or_index: str | int) -> np.ndarray:
         """The executed plan, float32 ``(T, 16)``."""
         return self._data[self._resolve(name_or_index)]["actions"][()]
@@ -113,6 +140,7 @@ class EpisodeDataset:
             states=self.states(name),
             success=self.success(name),
             attrs=self.demo_attrs(name),
+            view=self.view(name)[None] if VIEW_KEY in self._data[name]["obs"] else None,
         )
 
     # whole dataset ---------------------------------------------------------------------------
@@ -136,7 +164,8 @@ class EpisodeDataset:
         """sha256 over names, actions, labels and image bytes, in demo order (a cache key).
 
         Streams frames in blocks so memory stays bounded on big datasets. Attributes other than the
-        label and the storage layout (chunking, compression) do not change the hash.
+        label and the storage layout (chunking, compression) do not change the hash. A view image, where
+        episodes carry one, counts too (a dataset without views hashes as it always did).
         """
         h = hashlib.sha256(b"firp-episodes-content-v1\0")
         for name in self._names:
@@ -151,4 +180,8 @@ class EpisodeDataset:
             for start in range(0, images.shape[0], HASH_BLOCK_FRAMES):
                 block = np.ascontiguousarray(images[start : start + HASH_BLOCK_FRAMES], dtype=np.uint8)
                 h.update(block.tobytes())
+            if VIEW_KEY in demo["obs"]:
+                view = demo["obs"][VIEW_KEY]
+                h.update(b"view" + repr(view.shape).encode("ascii"))
+                h.update(np.ascontiguousarray(view[()], dtype=np.uint8).tobytes())
         return h.hexdigest()

@@ -20,6 +20,7 @@ from firp.core.episodes.layout import (
     GZIP_LEVEL,
     IMAGE_KEY,
     PART_RE,
+    VIEW_KEY,
     EpisodeRecord,
     EpisodeValidationError,
     demo_index,
@@ -52,9 +53,12 @@ def _write_demo_group(group: h5py.Group, record: EpisodeRecord, compression_leve
     obs.create_dataset(
         IMAGE_KEY, data=record.frames, chunks=(1, h, w, c), compression="gzip", compression_opts=compression_level
     )
+    if record.view is not None:
+        obs.create_dataset(VIEW_KEY, data=record.view, chunks=record.view.shape, compression="gzip",
+                           compression_opts=compression_level)
     group.create_dataset("actions", data=record.actions)
     group.create_dataset("states", data=record.states)
-    group.attrs["num_samples"] = np.int64(t)
+    group.attrs["num_samples"] = np.int64(record.actions.shape[0])
     group.attrs["success"] = np.bool_(record.success)
     write_attrs(group, record.attrs)
 
@@ -145,8 +149,11 @@ def _copy_demo(src: h5py.Group, dst_parent: h5py.Group, name: str) -> None:
     src.file.copy(src, dst_parent, name=name)
 
 
-def _demo_shape(group: h5py.Group) -> tuple[tuple[int, ...], int]:
-    return tuple(group["obs"][IMAGE_KEY].shape[1:]), int(group["states"].shape[1])
+def _demo_shape(group: h5py.Group) -> tuple[tuple[int, ...], int, tuple[int, ...] | None]:
+    """What must be one across a dataset: the frames' image size, the state width and the view's size."""
+    view = group["obs"].get(VIEW_KEY)
+    return (tuple(group["obs"][IMAGE_KEY].shape[1:]), int(group["states"].shape[1]),
+            tuple(view.shape) if view is not None else None)
 
 
 def consolidate(
@@ -234,8 +241,9 @@ def _finish_data_group(data: h5py.Group, attrs: Mapping[str, Any]) -> None:
             reference = (name, shape)
         elif shape != reference[1]:
             raise EpisodeValidationError(
-                f"{name} has frames {shape[0]} / state width {shape[1]}, but {reference[0]} has "
-                f"{reference[1][0]} / {reference[1][1]}: one dataset must have one image size and state layout"
+                f"{name} has frames {shape[0]} / state width {shape[1]} / view {shape[2]}, but {reference[0]} has "
+                f"{reference[1][0]} / {reference[1][1]} / {reference[1][2]}: one dataset must have one image size, "
+                "state layout and view"
             )
         total += int(data[name].attrs["num_samples"])
     write_attrs(data, attrs)

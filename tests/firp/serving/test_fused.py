@@ -197,3 +197,22 @@ def test_plan_geometry_members_score_like_the_loop_on_every_path(tmp_path, n):
         feats = enc.backbone_features(image[None]).expand(len(plans), -1)
         ref = torch.sigmoid(members[0].model.score(feats, torch.from_numpy(plans).float()).logits).numpy()
     np.testing.assert_allclose(got.member_probabilities[0], ref, atol=1e-5, rtol=0)
+
+
+def test_fused_members_reading_the_plan_s_events_equal_the_loop(tmp_path):
+    """The generic preset's members: each reads the plan's events through its own relation network."""
+    from ..model.test_plan_events import EVENTS
+
+    base = dataclasses.replace(SHIPPED_LIKE, geometry=TINY.geometry, events=EVENTS)
+    members = []
+    for k in range(3):
+        model = build_model("firp", dataclasses.replace(base, action_chunk=4)).eval()
+        model.geometry.fit(torch.from_numpy(valid_plans(8, 16, seed=99)).float())
+        members.append(BundleMember("firp", model.cfg, model, {"balanced_accuracy": 0.6}))
+    bundle = load_bundle(export_tiny(tmp_path / "events", members))
+    assert bundle.configs[0].events.kinematics == EVENTS.kinematics  # the chain travels in the manifest
+    fused, loop = EnsembleScorer(bundle, strategy="fused"), EnsembleScorer(bundle, strategy="loop")
+    image, plans = random_image(seed=4), valid_plans(5, 16, seed=3)
+    a, b = fused.score(image, plans), loop.score(image, plans)
+    np.testing.assert_allclose(a.member_probabilities, b.member_probabilities, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(a.weights, b.weights, atol=1e-5, rtol=0)
