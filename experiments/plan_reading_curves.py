@@ -28,6 +28,7 @@ import argparse
 import shlex
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -117,8 +118,8 @@ class EventClassifier(torch.nn.Module):
         self.events = events
         self.out = torch.nn.Sequential(torch.nn.ReLU(), torch.nn.Linear(events.dim, 1))
 
-    def forward(self, actions: torch.Tensor, **view) -> torch.Tensor:
-        return self.out(self.events(actions, **view)).squeeze(-1)
+    def forward(self, actions: torch.Tensor, train: bool = False, **view) -> torch.Tensor:
+        return self.out(self.events(actions, augment=train and bool(view), **view)).squeeze(-1)
 
 
 def fit_net(build, inputs: dict[str, torch.Tensor], y: np.ndarray, fit: np.ndarray, valid: np.ndarray,
@@ -152,8 +153,7 @@ def fit_net(build, inputs: dict[str, torch.Tensor], y: np.ndarray, fit: np.ndarr
         for i in range(0, len(order), batch):
             sl = order[i:i + batch]
             loss = torch.nn.functional.binary_cross_entropy_with_logits(
-                model(train=True, **{k: v[sl] for k, v in inputs.items()}) if "view" in inputs
-                else model(**{k: v[sl] for k, v in inputs.items()}), labels[sl])
+                model(train=True, **{k: v[sl] for k, v in inputs.items()}), labels[sl])
             optim.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
@@ -235,7 +235,28 @@ def run_learner(learner: str, actions: np.ndarray, y: np.ndarray, attrs: dict, d
     if source == "events":
         return fit_net(lambda: EventClassifier(build_plan_events(cfg, actions.shape[-1])), inputs, y, fit, valid,
                        test, seed=repeat)
-    raise SystemExit(f"learner {learner!r}: not available yet")
+    if "views" not in cache:
+        cache["views"] = view_inputs(data, attrs)
+    inputs.update(cache["views"])
+    cfg = replace(cfg, view=True)
+    return fit_net(lambda: EventClassifier(build_plan_events(cfg, actions.shape[-1])), inputs, y, fit, valid, test,
+                   seed=repeat)
+
+
+def view_inputs(data: Path, attrs: dict) -> dict[str, torch.Tensor]:
+    """Every episode's view image ``(N, S, S, 3)`` and the base-frame projection into it ``(N, 3, 4)``."""
+    from firp.core.camera import CameraCalibration
+    from firp.core.kinematics import KinematicChain
+
+    with EpisodeDataset(data) as ds:
+        if not ds.has_view:
+            raise SystemExit(f"{data}: no view images; collect with --view-size")
+        views = np.stack([ds.view(n) for n in ds.demo_names])
+    size = views.shape[1]
+    calibration = CameraCalibration.from_dict(attrs["camera_calibration"]).resized(size, size)
+    base = KinematicChain.from_dict(attrs["kinematics"]).base.matrix()
+    projection = torch.tensor(calibration.projection(base), dtype=torch.float32)
+    return {"view": torch.from_numpy(views), "projection": projection.expand(len(views), 3, 4)}
 
 
 def summary(records: list[dict]) -> str:

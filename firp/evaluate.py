@@ -111,7 +111,7 @@ def method_config(name: str, base: TrainConfig) -> TrainConfig:
 
 
 def evaluate_method(name: str, base: TrainConfig, data: SequenceData, repeat: int, run_dir: Path,
-                    progress: bool) -> dict:
+                    progress: bool, device: str = "cpu") -> dict:
     train_idx, valid_idx, test_idx = split_indices(data.labels.numpy(), repeat)
     cfg = method_config(name, replace(base, seed=repeat))
     if cfg.kind in FRAME_READERS:  # it reads every executed frame: the episodes that kept them
@@ -119,7 +119,7 @@ def evaluate_method(name: str, base: TrainConfig, data: SequenceData, repeat: in
         train_idx, valid_idx, test_idx = (i[framed[i]] for i in (train_idx, valid_idx, test_idx))
     started = time.perf_counter()
     result = train_model(cfg, data.subset(train_idx), data.subset(valid_idx), checkpoint_dir=run_dir / "checkpoint",
-                         progress=progress)
+                         progress=progress, device=device)
     valid, test = data.subset(valid_idx), data.subset(test_idx)
     p_valid, p_test = predict(result.model, valid), predict(result.model, test)
     return {
@@ -136,14 +136,14 @@ def evaluate_method(name: str, base: TrainConfig, data: SequenceData, repeat: in
 
 
 def _evaluate_task(name: str, base: TrainConfig, data: SequenceData, repeat: int, run_dir: Path,
-                   threads: int) -> dict:
-    """One (repeat, method) run inside a Ray worker, with the driver's thread count."""
+                   threads: int, device: str = "cpu") -> dict:
+    """One (repeat, method) run inside a Ray worker, with the driver's thread count and device."""
     torch.set_num_threads(threads)
-    return evaluate_method(name, base, data, repeat, run_dir, progress=False)
+    return evaluate_method(name, base, data, repeat, run_dir, progress=False, device=device)
 
 
 def evaluate_on_ray(address: str, runs: list[tuple[int, str]], base: TrainConfig, data: SequenceData, out: Path,
-                    threads: int):
+                    threads: int, device: str = "cpu"):
     """Train ``runs`` as Ray tasks of ``threads`` CPUs each and yield ``((repeat, method), row)`` as they finish.
 
     The sequences go into Ray's object store once and every task reads them from there; each task seeds
@@ -156,7 +156,7 @@ def evaluate_on_ray(address: str, runs: list[tuple[int, str]], base: TrainConfig
     with ray_session(address, os.cpu_count() or 1) as ray:
         task = ray.remote(num_cpus=threads, max_retries=3)(_evaluate_task)
         shared = ray.put(data)
-        pending = {task.remote(name, base, shared, repeat, out.resolve() / run_name(repeat, name), threads):
+        pending = {task.remote(name, base, shared, repeat, out.resolve() / run_name(repeat, name), threads, device):
                    (repeat, name) for repeat, name in runs}
         while pending:
             (ref,), _ = ray.wait(list(pending), num_returns=1)
@@ -248,9 +248,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     check_data_flag(parser, args)
     base, overrides = recipe_from(args, parser)
-    if not base.model.geometry.enabled and any(m in NEEDS_GEOMETRY for m in args.methods):
+    if not (base.model.geometry.enabled or base.model.events.enabled) and any(m in NEEDS_GEOMETRY for m in args.methods):
         parser.error(f"--methods: {', '.join(m for m in args.methods if m in NEEDS_GEOMETRY)} reads the plan's "
-                     "grasp-frame description, which this recipe leaves out: drop --no-plan-geometry")
+                     "description or events, which this recipe leaves out: drop --no-plan-geometry or add "
+                     "--plan-events")
     if args.only_repeats is not None and max(args.only_repeats) >= args.repeats:
         parser.error(f"--only-repeats: every index must be < --repeats ({args.repeats}), got {args.only_repeats}")
     out = args.out or Path("runs") / f"eval-{args.data.stem}"
@@ -262,10 +263,10 @@ def main(argv: list[str] | None = None) -> int:
     done = {run: json.loads(path.read_text()) for run in runs if (path := out / f"{run_name(*run)}.json").exists()}
     todo = [run for run in runs if run not in done and (args.only_repeats is None or run[0] in args.only_repeats)]
     if args.ray is not None:
-        finished = evaluate_on_ray(args.ray, todo, base, data, out, args.threads)
+        finished = evaluate_on_ray(args.ray, todo, base, data, out, args.threads, args.device)
     else:
-        finished = ((run, evaluate_method(run[1], base, data, run[0], out / run_name(*run), not args.no_progress))
-                    for run in todo)
+        finished = ((run, evaluate_method(run[1], base, data, run[0], out / run_name(*run), not args.no_progress,
+                                          args.device)) for run in todo)
     for (repeat, name), row in finished:
         (out / f"{run_name(repeat, name)}.json").write_text(json.dumps(row, indent=1))
         done[(repeat, name)] = row

@@ -16,8 +16,8 @@ from firp.core.cli_types import int_in_range, non_negative_float, positive_float
 
 #: flag destination -> the field of Preset.with_overrides it sets
 RECIPE_FLAGS = ("epochs", "patience", "min_epochs", "image_size", "action_chunk", "deter_dim", "hidden",
-                "head_temperature", "plan_geometry", "plan_description", "description_layers", "overshooting",
-                "prediction", "description_weight")
+                "head_temperature", "plan_geometry", "plan_description", "description_layers", "plan_events",
+                "plan_view", "overshooting", "prediction", "description_weight")
 
 
 def add_training_flags(parser: argparse.ArgumentParser) -> None:
@@ -38,6 +38,9 @@ def add_training_flags(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--image-size", type=int_in_range("--image-size", 16, 512), default=None,
                    help="backbone input size (product: 84, the frames' own size; paper: 224)")
     parser.add_argument("--threads", type=int_in_range("--threads", 1, 64), default=2, help="torch CPU threads")
+    parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
+                        help="where models train: auto takes a CUDA GPU where torch sees one, else the CPU (results "
+                             "may differ in the last digits between devices)")
     parser.add_argument("--cache-dir", type=Path, default=DEFAULT_CACHE_DIR, help="backbone feature cache")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars (logs, CI)")
 
@@ -64,6 +67,13 @@ def add_model_flags(parser: argparse.ArgumentParser) -> None:
                         "each pick's grasp and release heights (clearance_and_heights), the same with the clearance to "
                         "blocks of the sizes the plan's tower shows (sized_clearance_and_heights), or the first two "
                         "(both)")
+    g.add_argument("--plan-events", action=argparse.BooleanOptionalAction, default=None,
+                   help="give every plan-reading model the plan's events read through the arm's kinematics by a "
+                        "relation network (firp.model.plan_events; generic: no task's sizes; replaces the "
+                        "hand-built description)")
+    g.add_argument("--plan-view", action=argparse.BooleanOptionalAction, default=None,
+                   help="with --plan-events: each event also reads a hand-aligned crop of the dataset's view image "
+                        "(firp.model.plan_view; needs a dataset collected with --view-size)")
     g.add_argument("--description-layers", type=int_in_range("--description-layers", 1, 2), default=None,
                    help="hidden layers FIRP's and the GRU's success heads read the description through (product: 2; "
                         "1: one ReLU layer -- no gain measured on robosuite's stacking)")

@@ -2,7 +2,7 @@
 
 ``firp tune`` and ``firp evaluate`` start from a preset (``--preset``, default ``product``) and each
 flag given on the command line overrides one field of it; the bundle a study exports records the
-preset and the overrides. Two presets:
+preset and the overrides. Three presets:
 
 * ``paper`` -- the paper's defaults, exactly the dataclass defaults (``FIRPConfig()``,
   ``TrainConfig()``): one plan step per RSSM transition, PlaNet's sizes, L = 20, 224 px images, the
@@ -13,6 +13,10 @@ preset and the overrides. Two presets:
   ``docs/method.md``. The shipped replacement bundle is ``product`` with four plan steps per
   transition, without the description and with 100 / 50 / 25 epochs (``--action-chunk 4
   --no-plan-geometry --epochs 100 --min-epochs 50 --patience 25``).
+* ``generic`` -- ``product`` with the plan's events (:mod:`firp.model.plan_events`: the hand's poses at the
+  plan's events by the dataset's own kinematics, read by a relation network) in place of the hand-built
+  description: no object size, table height or gripper dimension anywhere, so a new task needs a dataset
+  and ``firp tune``.
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Any
 
-from firp.model.config import EncoderConfig, FIRPConfig, GeometryConfig, HeadConfig, RSSMConfig
+from firp.model.config import EncoderConfig, FIRPConfig, GeometryConfig, HeadConfig, PlanEventsConfig, RSSMConfig
 from firp.train import TrainConfig
 
 __all__ = ["PRESETS", "Preset", "preset"]
@@ -57,6 +61,17 @@ class Preset:
             if "description" in geometry and not model.geometry.enabled:
                 raise ValueError("--plan-description: the recipe leaves the plan's description out "
                                  "(--no-plan-geometry); drop one of the two")
+        events = {k: given.pop(f) for k, f in (("enabled", "plan_events"), ("view", "plan_view")) if f in given}
+        if events:
+            if events.get("enabled") and model.geometry.enabled:
+                if geometry.get("enabled"):
+                    raise ValueError("--plan-events: a model reads the hand-built description (--plan-geometry) or "
+                                     "the plan's events, not both; drop one of the two")
+                model = replace(model, geometry=replace(model.geometry, enabled=False))  # the events replace it
+            model = replace(model, events=replace(model.events, **events))
+            if model.events.view and not model.events.enabled:
+                raise ValueError("--plan-view: the view is read at the plan's events, which the recipe leaves out "
+                                 "(--no-plan-events)")
         loss = {k: given.pop(k) for k in ("overshooting", "prediction") if k in given}
         if "description_weight" in given:
             loss["description"] = given.pop("description_weight")
@@ -79,7 +94,14 @@ PRODUCT = Preset(
                                  geometry=GeometryConfig(enabled=True))),
     "product")
 
-PRESETS: dict[str, Preset] = {p.name: p for p in (PAPER, PRODUCT)}
+GENERIC = Preset(
+    "generic", "product with the plan's events read through the dataset's kinematics (no task's sizes) instead of "
+               "the hand-built description",
+    replace(PRODUCT.train, model=replace(PRODUCT.train.model, geometry=GeometryConfig(enabled=False),
+                                         events=PlanEventsConfig(enabled=True))),
+    "product")
+
+PRESETS: dict[str, Preset] = {p.name: p for p in (PAPER, PRODUCT, GENERIC)}
 
 
 def preset(name: str) -> Preset:

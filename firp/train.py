@@ -110,15 +110,31 @@ class TrainResult:
     seconds: float
 
 
+def resolve_device(name: str) -> torch.device:
+    """``auto`` (CUDA where torch sees a GPU, else the CPU), ``cpu`` or ``cuda``; a CUDA request on a machine
+    without one is an error that says so, not a silent fall back."""
+    if name not in ("auto", "cpu", "cuda"):
+        raise ValueError(f"--device: {name!r} is none of auto, cpu, cuda")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda: torch sees no CUDA device here (this torch build: "
+                         f"{torch.__version__}); use --device cpu or auto")
+    return torch.device("cuda" if name == "cuda" or (name == "auto" and torch.cuda.is_available()) else "cpu")
+
+
+def _model_device(model: torch.nn.Module) -> torch.device:
+    return next(model.parameters()).device
+
+
 @torch.inference_mode()
 def predict(model: torch.nn.Module, data: SequenceData, batch_size: int = 128) -> np.ndarray:
-    """Success probabilities (N,) through the inference path (the Oracle reads all frames)."""
+    """Success probabilities (N,) through the inference path (the Oracle reads all frames), on the model's device."""
     model.eval()
+    device = _model_device(model)
     probs = []
     for start in range(0, len(data), batch_size):
         sl = slice(start, start + batch_size)
         feats = data.features[sl] if getattr(model, "requires_future_frames", False) else data.features[sl, 0]
-        probs.append(torch.sigmoid(model.score(feats, data.actions[sl]).logits))
+        probs.append(torch.sigmoid(model.score(feats.to(device), data.actions[sl].to(device)).logits).cpu())
     return torch.cat(probs).numpy()
 
 
@@ -179,11 +195,15 @@ def _set_projection_trainable(model: torch.nn.Module, trainable: bool) -> None:
 
 
 def train_model(cfg: TrainConfig, train: SequenceData, valid: SequenceData, checkpoint_dir: str | os.PathLike | None = None,
-                progress: bool = True, initial_state: dict[str, torch.Tensor] | None = None) -> TrainResult:
+                progress: bool = True, initial_state: dict[str, torch.Tensor] | None = None,
+                device: str = "cpu") -> TrainResult:
     """Train ``cfg.kind`` on ``train``; select the epoch by validation balanced accuracy; resumable.
 
     ``initial_state`` warm-starts from a trained model of the same config (a bundle member being refreshed):
-    its weights *and* its normalisation statistics, which the weights were trained against."""
+    its weights *and* its normalisation statistics, which the weights were trained against. ``device``
+    (:func:`resolve_device`): where the model and each batch live; the data stays in RAM and the returned
+    model is on the CPU (what bundles and the service load)."""
+    where = resolve_device(device)
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     model = build_model(cfg.kind, cfg.model)
@@ -195,6 +215,7 @@ def train_model(cfg: TrainConfig, train: SequenceData, valid: SequenceData, chec
         model.geometry.fit(train.actions)  # likewise for the grasp-frame description
     if initial_state is not None:
         model.load_state_dict(initial_state)
+    model.to(where)
     optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     ckpt = Path(checkpoint_dir) if checkpoint_dir else None
     history: list[dict] = []
@@ -208,12 +229,12 @@ def train_model(cfg: TrainConfig, train: SequenceData, valid: SequenceData, chec
         if TrainConfig.from_dict(state["config"]).to_dict() != cfg.to_dict():
             raise ValueError(f"checkpoint {ckpt} was written by a different training config; use another directory")
         model.load_state_dict(load_file(ckpt / "last.safetensors"))
-        optim.load_state_dict(torch.load(ckpt / "optim.pt", weights_only=True))
+        optim.load_state_dict(torch.load(ckpt / "optim.pt", weights_only=True, map_location=where))
         best_state = load_file(ckpt / "best.safetensors")
         history, best, start_epoch = state["history"], tuple(state["best"]), state["epoch"] + 1
         if state.get("finished"):
             model.load_state_dict(best_state)
-            return TrainResult(model.eval(), best[1], best[0], history, state["seconds"])
+            return TrainResult(model.cpu().eval(), best[1], best[0], history, state["seconds"])
     n = len(train)
     bar = tqdm(range(start_epoch, cfg.epochs), desc=f"train {cfg.kind}", unit="epoch", disable=not progress)
     for epoch in bar:
@@ -226,8 +247,8 @@ def train_model(cfg: TrainConfig, train: SequenceData, valid: SequenceData, chec
         batches = 0
         for start in range(0, n, cfg.batch_size):
             idx = order[start:start + cfg.batch_size]
-            loss, terms = _loss(model, cfg, train.features[idx], train.actions[idx], train.labels[idx], epoch, gen,
-                                train.framed[idx])
+            loss, terms = _loss(model, cfg, train.features[idx].to(where), train.actions[idx].to(where),
+                                train.labels[idx].to(where), epoch, gen, train.framed[idx].to(where))
             if not loss.requires_grad:  # only initial-frame episodes before e_start_f: nothing to learn from
                 continue
             if not torch.isfinite(loss):
@@ -245,7 +266,7 @@ def train_model(cfg: TrainConfig, train: SequenceData, valid: SequenceData, chec
         history.append(record)
         if val_ba > best[0]:
             best = (val_ba, epoch)
-            best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+            best_state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
         bar.set_postfix(loss=f"{record.get('total', record.get('ce')):.3f}", val_ba=f"{val_ba:.3f}", best=f"{best[0]:.3f}")
         stop = epoch - best[1] >= cfg.patience and epoch + 1 >= cfg.min_epochs
         if ckpt:
@@ -255,7 +276,7 @@ def train_model(cfg: TrainConfig, train: SequenceData, valid: SequenceData, chec
             break
     bar.close()
     assert best_state is not None
-    model.load_state_dict(best_state)
+    model.cpu().load_state_dict(best_state)
     return TrainResult(model.eval(), best[1], best[0], history, time.perf_counter() - started)
 
 
@@ -263,7 +284,7 @@ def _save_checkpoint(ckpt: Path, model, optim, best_state, cfg: TrainConfig, his
                      finished: bool) -> None:
     """Write weights and state to temp names, then replace, so a crash leaves the previous checkpoint."""
     ckpt.mkdir(parents=True, exist_ok=True)
-    save_file({k: v.contiguous() for k, v in model.state_dict().items()}, ckpt / "last.safetensors.tmp")
+    save_file({k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}, ckpt / "last.safetensors.tmp")
     save_file({k: v.contiguous() for k, v in best_state.items()}, ckpt / "best.safetensors.tmp")
     torch.save(optim.state_dict(), ckpt / "optim.pt.tmp")
     (ckpt / "state.json.tmp").write_text(json.dumps({

@@ -170,7 +170,8 @@ def _origin(trial: optuna.trial.FrozenTrial) -> int:
 
 
 def run_study(data: SequenceData, base: TrainConfig, storage: str, study_name: str, trials: int, run_dir: Path,
-              progress: bool = True, space: str = "paper", recipe: dict | None = None) -> optuna.Study:
+              progress: bool = True, space: str = "paper", recipe: dict | None = None,
+              device: str = "cpu") -> optuna.Study:
     """Run trials until the study holds ``trials`` finished ones (a resumed study counts its old ones),
     together with every other worker on the same study: each stops once the study has ``trials``.
 
@@ -201,7 +202,7 @@ def run_study(data: SequenceData, base: TrainConfig, storage: str, study_name: s
         ckpt = run_dir / f"trial_{origin:04d}"
         trial.set_user_attr("checkpoint", str(ckpt.resolve()))  # absolute: any worker's export finds it
         trial.set_user_attr("config", cfg.to_dict())
-        result = train_model(cfg, train, valid, checkpoint_dir=ckpt, progress=progress)
+        result = train_model(cfg, train, valid, checkpoint_dir=ckpt, progress=progress, device=device)
         trial.set_user_attr("best_epoch", result.best_epoch)
         trial.set_user_attr("train_seconds", round(result.seconds, 1))
         return result.best_val_balanced_accuracy
@@ -321,7 +322,8 @@ def main(argv: list[str] | None = None) -> int:
     base = base.fit_to_data(data)
     started = time.perf_counter()
     study = run_study(data, base, storage, study_name, args.trials, runs / f"tune-{study_name}",
-                      progress=not args.no_progress, space=space, recipe={"preset": args.preset, "overrides": overrides})
+                      progress=not args.no_progress, space=space, recipe={"preset": args.preset, "overrides": overrides},
+                      device=args.device)
     best = top_trials(study)
     print(f"{len(study.trials)} trials in {storage} ({time.perf_counter() - started:.0f} s this call); best:")
     for t in best:

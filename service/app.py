@@ -93,7 +93,8 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     path = settings.bundle_dir
     log.info("loading bundle %s", path)
     try:
-        model = await anyio.to_thread.run_sync(ServiceModel.load, path, settings.feature_cache_size)
+        model = await anyio.to_thread.run_sync(ServiceModel.load, path, settings.feature_cache_size,
+                                                     settings.device)
     except BundleError as exc:
         log.error("cannot start: %s", exc)
         raise StartupError(f"cannot load the bundle at {path}: {exc}") from exc

@@ -70,7 +70,8 @@ class ModelRepository:
         settings = self.app.state.settings
         async with self.lock:
             try:
-                model = await anyio.to_thread.run_sync(ServiceModel.load, path, settings.feature_cache_size)
+                model = await anyio.to_thread.run_sync(ServiceModel.load, path, settings.feature_cache_size,
+                                                     settings.device)
             except BundleError as exc:
                 self.last_error = f"{path}: {exc}"
                 raise ServiceError(422, "parameters.bundle", exc.rule,

@@ -153,9 +153,9 @@ class ModelScores:
 class ServiceModel:
     """A verified bundle ready to score, plus what the routes report about it."""
 
-    def __init__(self, bundle: Bundle, feature_cache_size: int = 64):
+    def __init__(self, bundle: Bundle, feature_cache_size: int = 64, device: str = "cpu"):
         self.bundle = bundle
-        self.scorer = EnsembleScorer(bundle)
+        self.scorer = EnsembleScorer(bundle, device=device)
         self.cache = FeatureCache(feature_cache_size)
         self.limiter = anyio.CapacityLimiter(1)
         # The bundle's identity: manifest.json records the sha256 of every weights file, so its own
@@ -167,9 +167,9 @@ class ServiceModel:
         self.statistics = InferenceStatistics()  # the V2 statistics extension's counters (service.statistics)
 
     @classmethod
-    def load(cls, path: str | Path, feature_cache_size: int = 64) -> ServiceModel:
+    def load(cls, path: str | Path, feature_cache_size: int = 64, device: str = "cpu") -> ServiceModel:
         """Load and verify the bundle (raises :class:`firp.bundle.BundleError` naming file and rule)."""
-        return cls(load_bundle(path), feature_cache_size)
+        return cls(load_bundle(path), feature_cache_size, device)
 
     # ---------------------------------------------------------------- identity and contract
 

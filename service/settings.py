@@ -40,6 +40,8 @@ class ServiceSettings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(8001, ge=0, le=65535)
     threads: int = Field(1, ge=1, le=256, description="torch intra-op threads for inference")
+    device: Literal["auto", "cpu", "cuda"] = Field("cpu", description="where the bundle scores: cpu, cuda, or auto "
+                                                  "(a CUDA GPU where torch sees one)")
     api_key: SecretStr | None = Field(None, description="if set, /v1 and /v2 model routes need header X-API-Key")
     max_body_bytes: int = Field(16 * MIB, ge=1024, description="larger request bodies get 413")
     max_image_bytes: int = Field(4 * MIB, ge=64, description="larger encoded images get 413")

@@ -70,19 +70,24 @@ class EnsembleResult:
 class EnsembleScorer:
     """Scores plans for one initial image with every member of a :class:`~firp.bundle.Bundle`."""
 
-    def __init__(self, bundle: Bundle, strategy: Strategy = "fused"):
+    def __init__(self, bundle: Bundle, strategy: Strategy = "fused", device: str = "cpu"):
+        """``device``: ``cpu``, ``cuda`` or ``auto`` (:func:`firp.train.resolve_device`): where the members and
+        the backbone run; inputs and results stay numpy on the host."""
         if strategy not in ("fused", "loop"):
             raise ValueError(f"strategy must be 'fused' or 'loop', got {strategy!r}")
+        from firp.train import resolve_device
+
+        self.device = resolve_device(device)
         keys = {json.dumps(backbone_key(c.encoder), sort_keys=True) for c in bundle.configs}
         assert len(keys) == 1, f"members must share one backbone and image size, got {sorted(keys)}"
         assert backbone_key(bundle.encoder_config) == backbone_key(bundle.configs[0].encoder)
         self.bundle = bundle
-        self.models = bundle.models
+        self.models = [m.to(self.device) for m in bundle.models]
         self.threshold = float(bundle.threshold)
         self.t_range = bundle.t_range
         self.strategy: Strategy = strategy
         # The one frozen backbone (its projection is unused: each member owns its projection).
-        self.encoder = ImageEncoder(bundle.encoder_config, backbone=bundle.backbone).eval()
+        self.encoder = ImageEncoder(bundle.encoder_config, backbone=bundle.backbone).eval().to(self.device)
         self.encoder.requires_grad_(False)
         # The members as units (member indices, how they run): FIRP members of one architecture form
         # one fused group; every other member runs on its own.
@@ -181,9 +186,10 @@ class EnsembleScorer:
 
     def _score_checked(self, features: Tensor, checked: np.ndarray) -> EnsembleResult:
         with torch.inference_mode():
-            actions = torch.from_numpy(checked).to(torch.float32)
+            actions = torch.from_numpy(checked).to(torch.float32).to(self.device)
             # (1, Db) stays one row: the backbone ran once, and fused members project it once
-            logits, weights = self._run_members(features, actions)
+            logits, weights = self._run_members(features.to(self.device), actions)
+            logits, weights = logits.cpu(), [w.cpu() if w is not None else None for w in weights]
             member_probs = torch.sigmoid(logits.double())  # (M, N)
             probs = member_probs.mean(dim=0)
             spread = member_probs.std(dim=0, unbiased=False)

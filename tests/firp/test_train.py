@@ -184,3 +184,28 @@ def test_a_recipe_reading_the_events_takes_the_kinematics_from_the_dataset():
         cfg.fit_to_data(data)
     data.attrs["kinematics"] = {"format": "firp-serial-chain-v1"}
     assert cfg.fit_to_data(data).model.events.kinematics == {"format": "firp-serial-chain-v1"}
+
+
+def test_devices_are_named_and_a_missing_gpu_is_an_error_not_a_fall_back():
+    from firp.train import resolve_device
+
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device("auto") == torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(ValueError, match="none of auto, cpu, cuda"):
+        resolve_device("tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="no CUDA device"):
+            resolve_device("cuda")
+
+
+def test_the_gpu_check_script_trains_and_scores_on_the_cpu_here(tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "scripts" / "gpu_check.py"
+    spec = importlib.util.spec_from_file_location("gpu_check", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert module.main(["--device", "cpu", "--episodes", "64", "--epochs", "1", "--out", str(tmp_path / "g.json")]) == 0
+    figures = json.loads((tmp_path / "g.json").read_text())
+    assert figures["device"] == "cpu" and figures["max_probability_difference_device_vs_cpu"] == 0.0
