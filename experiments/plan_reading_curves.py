@@ -178,11 +178,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--learners", nargs="+", default=list(LEARNERS[:4]), choices=LEARNERS)
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--min-steps", type=int, default=1500,
+                        help="the networks' optimizer steps before early stopping may end their training")
     parser.add_argument("--out", type=Path, required=True, help="JSON lines, one per (learner, size, repeat)")
     parser.add_argument("--plot", type=Path, default=None)
     args = parser.parse_args(argv)
-    if any(n < 50 for n in args.sizes):
-        parser.error("--sizes: each training set needs at least 50 episodes")
+    if any(n < 20 for n in args.sizes):
+        parser.error("--sizes: each training set needs at least 20 episodes (a fifth of them validate)")
     torch.set_num_threads(args.threads)
     with EpisodeDataset(args.data) as ds:
         names = ds.demo_names
@@ -200,7 +202,8 @@ def main(argv: list[str] | None = None) -> int:
                 if (learner, size, repeat) in done:
                     continue
                 started = time.perf_counter()
-                result = run_learner(learner, actions, y, attrs, args.data, fit, valid, test, repeat, cache)
+                result = run_learner(learner, actions, y, attrs, args.data, fit, valid, test, repeat, cache,
+                                     args.min_steps)
                 record = {"learner": learner, "size": size, "repeat": repeat, "n_fit": len(fit), "n_valid": len(valid),
                           "n_test": len(test), **result, "seconds": round(time.perf_counter() - started, 1),
                           "dataset": str(args.data), "command": command}
@@ -216,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run_learner(learner: str, actions: np.ndarray, y: np.ndarray, attrs: dict, data: Path, fit: np.ndarray,
-                valid: np.ndarray, test: np.ndarray, repeat: int, cache: dict) -> dict:
+                valid: np.ndarray, test: np.ndarray, repeat: int, cache: dict, min_steps: int = 1500) -> dict:
     source, kind = learner.split(":")
     if source == "raw":
         return fit_gb(raw_plan(actions), y, fit, valid, test)
@@ -234,13 +237,13 @@ def run_learner(learner: str, actions: np.ndarray, y: np.ndarray, attrs: dict, d
     inputs = {"actions": torch.from_numpy(actions)}
     if source == "events":
         return fit_net(lambda: EventClassifier(build_plan_events(cfg, actions.shape[-1])), inputs, y, fit, valid,
-                       test, seed=repeat)
+                       test, seed=repeat, min_steps=min_steps)
     if "views" not in cache:
         cache["views"] = view_inputs(data, attrs)
     inputs.update(cache["views"])
     cfg = replace(cfg, view=True)
     return fit_net(lambda: EventClassifier(build_plan_events(cfg, actions.shape[-1])), inputs, y, fit, valid, test,
-                   seed=repeat)
+                   seed=repeat, min_steps=min_steps)
 
 
 def view_inputs(data: Path, attrs: dict) -> dict[str, torch.Tensor]:

@@ -35,7 +35,10 @@ def panda_plans(B: int, T: int, seed: int = 0) -> torch.Tensor:
     home = torch.tensor([0.0, -0.35, 0.0, -2.3, 0.0, 1.95, -0.7853])
     plan[..., 7:14] = home + 0.3 * torch.randn(B, T, 7)
     plan[..., 14:] = torch.rand(B, T, 1).expand(B, T, 2) * 0.04
-    return plan
+    from firp.core.contract import JOINT_LOWER, JOINT_UPPER
+
+    return plan.clamp(torch.cat([torch.zeros(7), torch.tensor(JOINT_LOWER, dtype=torch.float32)]),
+                      torch.cat([torch.ones(7), torch.tensor(JOINT_UPPER, dtype=torch.float32)]))
 
 
 def test_chain_fk_equals_the_numpy_reference_and_the_panda_s_published_dh_parameters():
