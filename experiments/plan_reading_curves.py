@@ -9,6 +9,9 @@ early stopping and the threshold). Learners, ``INPUT:LEARNER``:
 * ``raw:gb`` -- gradient boosting on the raw plan (the joint targets every 4th step): generic, no model;
 * ``grasp_frame:gb``, ``grasp_frame:mlp`` -- gradient boosting / a small MLP on the hand-built grasp-frame
   description (:mod:`firp.model.plan_geometry`, written for cubes and a Panda): the bar to beat;
+* ``events:gb`` -- gradient boosting on the same generic numbers the relation network reads (each event's
+  hand pose, category, time and gripper; every other event's offset, distance and relative rotation in its
+  hand frame), flattened: whether the information is there, apart from how a network learns it;
 * ``events:net`` -- the product's generic reading (:mod:`firp.model.plan_events`: the plan's events through
   the dataset's kinematics, a relation network) with a linear score, trained end to end;
 * ``events_view:net`` -- the same, each event also reading the initial image where its hand is
@@ -40,7 +43,7 @@ from firp.data import stratified_split
 from firp.metrics import balanced_accuracy, choose_threshold
 from planner_client.loop import read_records
 
-LEARNERS = ("raw:gb", "grasp_frame:gb", "grasp_frame:mlp", "events:net", "events_view:net")
+LEARNERS = ("raw:gb", "grasp_frame:gb", "grasp_frame:mlp", "events:gb", "events:net", "events_view:net")
 
 
 def split_pool(labels: np.ndarray, sizes: list[int], repeat: int) -> tuple[np.ndarray, dict[int, np.ndarray]]:
@@ -182,6 +185,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="the networks' optimizer steps before early stopping may end their training")
     parser.add_argument("--out", type=Path, required=True, help="JSON lines, one per (learner, size, repeat)")
     parser.add_argument("--plot", type=Path, default=None)
+    parser.add_argument("--report", type=Path, default=None, help="also write the summary table (Markdown) here")
     args = parser.parse_args(argv)
     if any(n < 20 for n in args.sizes):
         parser.error("--sizes: each training set needs at least 20 episodes (a fifth of them validate)")
@@ -212,7 +216,14 @@ def main(argv: list[str] | None = None) -> int:
                       f"(valid threshold {result['test_balanced_accuracy_valid_threshold']:.3f}, "
                       f"AUC {result['test_auc']:.3f}) in {record['seconds']} s", flush=True)
     records = read_records(args.out)
-    print(summary(records))
+    table = summary(records)
+    print(table)
+    if args.report:
+        args.report.parent.mkdir(parents=True, exist_ok=True)
+        commands = "\n".join(f"    {c}" for c in dict.fromkeys(r["command"] for r in records))
+        args.report.write_text(f"# What reads the plan: learning curves on {args.data}\n\nThe records' commands "
+                               f"(each record of `{args.out}` holds its own):\n\n{commands}\n\n{table}\n")
+        print(f"wrote {args.report}")
     if args.plot:
         plot(records, args.plot, args.data.stem)
     return 0
@@ -235,6 +246,10 @@ def run_learner(learner: str, actions: np.ndarray, y: np.ndarray, attrs: dict, d
         raise SystemExit(f"{data}: the dataset carries no kinematics; collect it with --framed or --view-size")
     cfg = PlanEventsConfig(enabled=True, kinematics=attrs["kinematics"])
     inputs = {"actions": torch.from_numpy(actions)}
+    if learner == "events:gb":
+        if "events_flat" not in cache:
+            cache["events_flat"] = flat_events(build_plan_events(cfg, actions.shape[-1]), actions)
+        return fit_gb(cache["events_flat"], y, fit, valid, test)
     if source == "events":
         return fit_net(lambda: EventClassifier(build_plan_events(cfg, actions.shape[-1])), inputs, y, fit, valid,
                        test, seed=repeat, min_steps=min_steps)
@@ -244,6 +259,26 @@ def run_learner(learner: str, actions: np.ndarray, y: np.ndarray, attrs: dict, d
     cfg = replace(cfg, view=True)
     return fit_net(lambda: EventClassifier(build_plan_events(cfg, actions.shape[-1])), inputs, y, fit, valid, test,
                    seed=repeat, min_steps=min_steps)
+
+
+def flat_events(events, actions: np.ndarray) -> np.ndarray:
+    """The relation network's raw inputs, flattened per plan: every event's token and the geometric part of
+    every pair (offset, distance, relative rotation), zeros for absent events (padded to the most events of
+    any plan, so a column means one event or pair in every row)."""
+    chunks = []
+    with torch.no_grad():
+        for i in range(0, len(actions), 512):
+            tokens, pairs, present = events.raw_features(torch.from_numpy(actions[i:i + 512]).double())
+            both = (present.unsqueeze(1) & present.unsqueeze(2)).unsqueeze(-1)
+            chunks.append((tokens * present.unsqueeze(-1), pairs[..., :10] * both))
+    E = max(t.shape[1] for t, _ in chunks)
+    rows = []
+    for tokens, pairs in chunks:
+        pad = E - tokens.shape[1]
+        tokens = torch.nn.functional.pad(tokens, (0, 0, 0, pad))
+        pairs = torch.nn.functional.pad(pairs, (0, 0, 0, pad, 0, pad))
+        rows.append(torch.cat([tokens.flatten(1), pairs.flatten(1)], dim=1).numpy())
+    return np.concatenate(rows)
 
 
 def view_inputs(data: Path, attrs: dict) -> dict[str, torch.Tensor]:
@@ -263,16 +298,23 @@ def view_inputs(data: Path, attrs: dict) -> dict[str, torch.Tensor]:
 
 
 def summary(records: list[dict]) -> str:
-    lines = ["| learner | " + " | ".join(str(n) for n in sorted({r['size'] for r in records})) + " |"]
+    """Markdown: per learner and training size, the mean test balanced accuracy / AUC over the repeats, and the
+    mean seconds a fit took (on this machine, beside whatever else ran)."""
     sizes = sorted({r["size"] for r in records})
-    lines.append("|---" * (len(sizes) + 1) + "|")
+    lines = ["| learner | " + " | ".join(f"{n} episodes" for n in sizes) + " | seconds per fit (largest) |",
+             "|---" * (len(sizes) + 2) + "|"]
     for learner in sorted({r["learner"] for r in records}):
-        cells = []
+        cells, seconds = [], ""
         for n in sizes:
-            vals = [r["test_balanced_accuracy"] for r in records if r["learner"] == learner and r["size"] == n]
-            cells.append(f"{np.mean(vals):.3f}" if vals else "")
-        lines.append(f"| {learner} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+            rows = [r for r in records if r["learner"] == learner and r["size"] == n]
+            if rows:
+                cells.append(f"{np.mean([r['test_balanced_accuracy'] for r in rows]):.3f} / "
+                             f"{np.mean([r['test_auc'] for r in rows]):.3f}" + (f" ({len(rows)})" if len(rows) > 1 else ""))
+                seconds = f"{np.mean([r['seconds'] for r in rows]):.0f}"
+            else:
+                cells.append("")
+        lines.append(f"| {learner} | " + " | ".join(cells) + f" | {seconds} |")
+    return "\n".join(lines) + "\n\nCells: test balanced accuracy at 0.5 / test AUC, mean over (repeats) where more than one."
 
 
 def plot(records: list[dict], path: Path, title: str) -> None:

@@ -36,11 +36,11 @@ def synthetic_dataset(root: Path, n: int = 90) -> Path:
 def test_the_curves_put_every_learner_on_one_test_set_and_resume(tmp_path, capsys):
     data = synthetic_dataset(tmp_path)
     out = tmp_path / "curves.jsonl"
-    argv = ["--data", str(data), "--sizes", "30", "60", "--learners", "raw:gb", "grasp_frame:gb", "events:net",
+    argv = ["--data", str(data), "--sizes", "30", "60", "--learners", "raw:gb", "grasp_frame:gb", "events:gb", "events:net",
             "events_view:net", "--out", str(out), "--threads", "1", "--min-steps", "10", "--plot", str(tmp_path / "c.png")]
     assert plan_reading_curves.main(argv) == 0
     records = read_records(out)
-    assert {(r["learner"], r["size"]) for r in records} == {(lr, n) for lr in ("raw:gb", "grasp_frame:gb", "events:net",
+    assert {(r["learner"], r["size"]) for r in records} == {(lr, n) for lr in ("raw:gb", "grasp_frame:gb", "events:gb", "events:net",
                                                                                 "events_view:net") for n in (30, 60)}
     assert len({r["n_test"] for r in records}) == 1 and all(r["n_fit"] + r["n_valid"] == r["size"] for r in records)
     assert all(0.0 <= r["test_balanced_accuracy"] <= 1.0 and "command" in r for r in records)
