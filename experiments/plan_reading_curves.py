@@ -15,7 +15,9 @@ early stopping and the threshold). Learners, ``INPUT:LEARNER``:
 * ``events:net`` -- the product's generic reading (:mod:`firp.model.plan_events`: the plan's events through
   the dataset's kinematics, a relation network) with a linear score, trained end to end;
 * ``events_view:net`` -- the same, each event also reading the initial image where its hand is
-  (:mod:`firp.model.plan_view`), for datasets that carry a view.
+  (:mod:`firp.model.plan_view`), for datasets that carry a view;
+* ``events_final_view:net`` -- an Oracle: the same, reading the settled *final* scene at the plan's events
+  (``firp collect --final-view``), which shows the outcome.
 
 Each (learner, size, repeat) is one JSON line of ``--out`` as it finishes, so a run resumes; ``--plot`` draws
 the curves (balanced accuracy against training episodes, log-2 axis).
@@ -43,7 +45,8 @@ from firp.data import stratified_split
 from firp.metrics import balanced_accuracy, choose_threshold
 from planner_client.loop import read_records
 
-LEARNERS = ("raw:gb", "grasp_frame:gb", "grasp_frame:mlp", "events:gb", "events:net", "events_view:net")
+LEARNERS = ("raw:gb", "grasp_frame:gb", "grasp_frame:mlp", "events:gb", "events:net", "events_view:net",
+            "events_final_view:net")
 
 
 def split_pool(labels: np.ndarray, sizes: list[int], repeat: int) -> tuple[np.ndarray, dict[int, np.ndarray]]:
@@ -253,9 +256,10 @@ def run_learner(learner: str, actions: np.ndarray, y: np.ndarray, attrs: dict, d
     if source == "events":
         return fit_net(lambda: EventClassifier(build_plan_events(cfg, actions.shape[-1])), inputs, y, fit, valid,
                        test, seed=repeat, min_steps=min_steps)
-    if "views" not in cache:
-        cache["views"] = view_inputs(data, attrs)
-    inputs.update(cache["views"])
+    final = source == "events_final_view"
+    if ("views", final) not in cache:
+        cache[("views", final)] = view_inputs(data, attrs, final)
+    inputs.update(cache[("views", final)])
     cfg = replace(cfg, view=True)
     return fit_net(lambda: EventClassifier(build_plan_events(cfg, actions.shape[-1])), inputs, y, fit, valid, test,
                    seed=repeat, min_steps=min_steps)
@@ -281,15 +285,17 @@ def flat_events(events, actions: np.ndarray) -> np.ndarray:
     return np.concatenate(rows)
 
 
-def view_inputs(data: Path, attrs: dict) -> dict[str, torch.Tensor]:
-    """Every episode's view image ``(N, S, S, 3)`` and the base-frame projection into it ``(N, 3, 4)``."""
+def view_inputs(data: Path, attrs: dict, final: bool = False) -> dict[str, torch.Tensor]:
+    """Every episode's view image ``(N, S, S, 3)`` -- the initial scene, or with ``final`` the settled final one --
+    and the base-frame projection into it ``(N, 3, 4)``."""
     from firp.core.camera import CameraCalibration
     from firp.core.kinematics import KinematicChain
 
     with EpisodeDataset(data) as ds:
-        if not ds.has_view:
-            raise SystemExit(f"{data}: no view images; collect with --view-size")
-        views = np.stack([ds.view(n) for n in ds.demo_names])
+        if not (ds.has_final_view if final else ds.has_view):
+            raise SystemExit(f"{data}: no {'final ' if final else ''}view images; collect with --view-size"
+                             + (" --final-view" if final else ""))
+        views = np.stack([(ds.final_view if final else ds.view)(n) for n in ds.demo_names])
     size = views.shape[1]
     calibration = CameraCalibration.from_dict(attrs["camera_calibration"]).resized(size, size)
     base = KinematicChain.from_dict(attrs["kinematics"]).base.matrix()

@@ -139,6 +139,9 @@ def add_collect_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentPars
     c.add_argument("--camera", default=None,
                    help="the robosuite world's camera of the images (default agentview; stack_three also has "
                         "workspaceview, a close view of the cubes)")
+    c.add_argument("--final-view", action="store_true",
+                   help="our world, with --view-size: also keep the settled final scene at that size (what an Oracle "
+                        "reads: it shows the outcome)")
     c.add_argument("--pose-error-mm", type=non_negative_float("--pose-error-mm"), default=3.0,
                    help="std of the planner's block position estimate error in the plane (0 = exact)")
     c.add_argument("--pose-error-deg", type=non_negative_float("--pose-error-deg"), default=3.0,
@@ -160,8 +163,10 @@ def collect_command(args: argparse.Namespace, parser: argparse.ArgumentParser, a
     if args.camera is not None and args.world != "robosuite":
         parser.error("--camera: our world's camera is fixed per task (sim_worker.scene); --camera is the robosuite "
                      "world's")
-    if args.world == "robosuite" and (args.framed is not None or args.view_size):
-        parser.error("--framed/--view-size: our world's collection only, so far")
+    if args.world == "robosuite" and (args.framed is not None or args.view_size or args.final_view):
+        parser.error("--framed/--view-size/--final-view: our world's collection only, so far")
+    if args.final_view and not args.view_size:
+        parser.error("--final-view: the final scene is kept at the view's size; give --view-size too")
     if args.world == "robosuite":
         balance = _collect_robosuite(args, parser, argv)
     else:
@@ -172,7 +177,7 @@ def collect_command(args: argparse.Namespace, parser: argparse.ArgumentParser, a
         config = CollectConfig(task=args.task, episodes=args.episodes, out=args.out, workers=args.workers,
                                seed_offset=args.seed_offset, horizon=args.horizon or DEFAULT_T,
                                image_size=args.image_size, pose_error=error, framed=args.framed,
-                               view_size=args.view_size)
+                               view_size=args.view_size, final_view=args.final_view)
         balance = collect(config, progress=not args.no_progress, ray=args.ray)
     print(f"{args.out}: {balance['total']} episodes, {balance['success']} success / {balance['failure']} failure "
           f"(success rate {balance['success_rate']:.3f}); {balance['new_episodes']} new in {balance['seconds']} s")

@@ -56,6 +56,8 @@ class CollectConfig:
     framed: int | None = None
     #: > 0: every episode also keeps its initial image at this many pixels square, for the plan-conditioned view
     view_size: int = 0
+    #: with ``view_size``: also the settled final scene at that size (what an Oracle reads)
+    final_view: bool = False
 
     @property
     def parts_dir(self) -> Path:
@@ -100,11 +102,13 @@ def plan_episode(planner: TampPlanner, task: str, seed: int, order: tuple[str, .
 
 def simulate_episode(world: World, planner: TampPlanner, task: str, seed: int, order: tuple[str, ...],
                      pose_error: PoseErrorConfig, sampler: SamplerConfig = SamplerConfig(),
-                     record_frames: bool = True, initial_frame: bool = False, view_size: int = 0) -> EpisodeRecord:
+                     record_frames: bool = True, initial_frame: bool = False, view_size: int = 0,
+                     final_view: bool = False) -> EpisodeRecord:
     """One labelled episode: initial state from ``seed``, plan from the noisy estimates, execution.
 
     Without ``record_frames`` the frames are the initial image alone with ``initial_frame`` (1, H, W, 3),
-    else a 1-pixel placeholder per step; ``view_size`` > 0 adds the initial image at that size (``view``)."""
+    else a 1-pixel placeholder per step; ``view_size`` > 0 adds the initial image at that size (``view``) and with
+    ``final_view`` the settled final scene too (``final_view``)."""
     planned = plan_episode(planner, task, seed, order, pose_error, world.layout, sampler)
     actions = planned.plan.actions
     initial = view = None
@@ -115,6 +119,7 @@ def simulate_episode(world: World, planner: TampPlanner, task: str, seed: int, o
     result = execute_plan(world, task, planned.true_blocks, actions, ExecutorConfig(record_frames=record_frames))
     frames = result.frames if result.frames is not None else (
         initial if initial is not None else np.zeros((len(actions), 1, 1, 3), np.uint8))
+    final = world.render(size=view_size)[None] if final_view and view_size else None  # the world is where it ended
     return EpisodeRecord(
         frames=frames,
         actions=actions.astype(np.float32),
@@ -125,6 +130,7 @@ def simulate_episode(world: World, planner: TampPlanner, task: str, seed: int, o
             "sim_seconds": result.sim_seconds, "unstable": result.unstable,
         },
         view=view,
+        final_view=final,
     )
 
 
@@ -144,7 +150,7 @@ def _simulate_one(index: int) -> EpisodeRecord:
     seed = config.seed_offset + index
     return simulate_episode(_worker["world"], _worker["planner"], config.task, seed, episode_order(seed),
                             config.pose_error, config.sampler, record_frames=config.keeps_frames(index),
-                            initial_frame=True, view_size=config.view_size)
+                            initial_frame=True, view_size=config.view_size, final_view=config.final_view)
 
 
 # -- the process pool's side of run_collection -------------------------------------------------
@@ -194,6 +200,8 @@ def dataset_attrs(config: CollectConfig, layout: SceneLayout = SceneLayout()) ->
             attrs["camera_calibration"] = world.camera_calibration().to_dict()
         attrs["framed_episodes"] = -1 if config.framed is None else config.framed
         attrs["view_size"] = config.view_size
+        if config.final_view:
+            attrs["final_view"] = True
     return attrs
 
 

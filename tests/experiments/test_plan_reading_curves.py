@@ -26,7 +26,8 @@ def synthetic_dataset(root: Path, n: int = 90) -> Path:
     for i in range(n):
         view = np.full((1, 32, 32, 3), 40 * int(labels[i]), np.uint8)
         write_episode_part(root / "parts", i, EpisodeRecord(np.zeros((1, 8, 8, 3), np.uint8), plans[i].numpy(),
-                                                            np.zeros((12, 2)), bool(labels[i]), {}, view=view))
+                                                            np.zeros((12, 2)), bool(labels[i]), {}, view=view,
+                                                            final_view=255 - view))
     out = root / "synthetic.h5"
     consolidate(root / "parts", out, {"fps": 4, "T": 12, "task": "stacking", "kinematics": PANDA,
                                       "camera_calibration": camera.to_dict()})
@@ -37,11 +38,12 @@ def test_the_curves_put_every_learner_on_one_test_set_and_resume(tmp_path, capsy
     data = synthetic_dataset(tmp_path)
     out = tmp_path / "curves.jsonl"
     argv = ["--data", str(data), "--sizes", "30", "60", "--learners", "raw:gb", "grasp_frame:gb", "events:gb", "events:net",
-            "events_view:net", "--out", str(out), "--threads", "1", "--min-steps", "10", "--plot", str(tmp_path / "c.png")]
+            "events_view:net", "events_final_view:net", "--out", str(out), "--threads", "1", "--min-steps", "10", "--plot", str(tmp_path / "c.png")]
     assert plan_reading_curves.main(argv) == 0
     records = read_records(out)
     assert {(r["learner"], r["size"]) for r in records} == {(lr, n) for lr in ("raw:gb", "grasp_frame:gb", "events:gb", "events:net",
-                                                                                "events_view:net") for n in (30, 60)}
+                                                                                "events_view:net",
+                                                                                "events_final_view:net") for n in (30, 60)}
     assert len({r["n_test"] for r in records}) == 1 and all(r["n_fit"] + r["n_valid"] == r["size"] for r in records)
     assert all(0.0 <= r["test_balanced_accuracy"] <= 1.0 and "command" in r for r in records)
     assert (tmp_path / "c.png").stat().st_size > 0

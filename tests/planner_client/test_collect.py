@@ -45,11 +45,14 @@ def test_a_collection_keeps_frames_of_the_first_episodes_a_view_of_all_and_the_s
     from firp.core.kinematics import KinematicChain
 
     out, full = tmp_path / "mixed.h5", tmp_path / "full.h5"
-    collect(CollectConfig(task="stacking", episodes=2, out=out, framed=1, view_size=48, **TINY), progress=False)
+    collect(CollectConfig(task="stacking", episodes=2, out=out, framed=1, view_size=48, final_view=True, **TINY),
+            progress=False)
     collect(CollectConfig(task="stacking", episodes=2, out=full, **TINY), progress=False)
     with EpisodeDataset(out) as ds, EpisodeDataset(full) as reference:
         assert ds.framed_mask().tolist() == [True, False] and ds.has_view
         assert ds.frames(1).shape == (1, 24, 24, 3) and ds.view(1).shape == (48, 48, 3)
+        assert ds.has_final_view and ds.final_view(0).shape == (48, 48, 3)
+        assert not np.array_equal(ds.final_view(0), ds.view(0))  # the scene after the plan ran
         np.testing.assert_array_equal(ds.frames(1)[0], reference.frames(1)[0])  # the same initial image
         np.testing.assert_array_equal(ds.success_labels(), reference.success_labels())
         for name in ds.demo_names:

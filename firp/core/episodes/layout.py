@@ -22,6 +22,9 @@ IMAGE_KEY = "agentview_image"
 #: The observation key of the initial image at the view's (higher) resolution, ``(1, H, W, 3)``: what the
 #: plan-conditioned view reads, through the dataset's ``camera_calibration`` (optional).
 VIEW_KEY = "view_image"
+#: The observation key of the settled final scene at the view's resolution, ``(1, H, W, 3)``: what only an
+#: Oracle may read (it shows the outcome), optional.
+FINAL_VIEW_KEY = "final_view_image"
 #: Attribute listing which attributes of an object hold JSON-encoded containers.
 JSON_ATTRS_KEY = "_json_attrs"
 #: Per-demo attributes written by this module; a record's own attrs may not use these names.
@@ -51,7 +54,8 @@ class EpisodeRecord:
     prediction terms); ``actions`` float32 ``(T, 16)`` (a contract plan); ``states`` float64 ``(T, S)``
     (MuJoCo qpos/qvel etc., for replay); ``success`` the label the model learns; ``attrs`` metadata
     (task, seed, block order, pose estimates, ...); ``view`` optionally the initial image at a higher
-    resolution, uint8 ``(1, H', W', 3)``.
+    resolution, uint8 ``(1, H', W', 3)``; ``final_view`` optionally the settled final scene at that resolution
+    (what an Oracle reads).
     """
 
     frames: np.ndarray
@@ -60,6 +64,7 @@ class EpisodeRecord:
     success: bool
     attrs: dict[str, AttrValue] = field(default_factory=dict)
     view: np.ndarray | None = None
+    final_view: np.ndarray | None = None
 
     @property
     def num_samples(self) -> int:
@@ -244,13 +249,8 @@ def validate_record(record: EpisodeRecord, limits: PlanLimits = PlanLimits()) ->
             f"T must agree: frames have {frames.shape[0]} steps (T, or 1: the initial image only), actions {t}, "
             f"states {states.shape[0]}"
         )
-    view = None
-    if record.view is not None:
-        view = np.asarray(record.view)
-        if view.ndim == 3:
-            view = view[None]
-        if view.dtype != np.uint8 or view.ndim != 4 or view.shape[0] != 1 or view.shape[-1] != 3 or 0 in view.shape:
-            raise EpisodeValidationError(f"view must be one uint8 RGB image (1, H, W, 3), got {view.dtype} {view.shape}")
+    view, final_view = (_one_image(name, image) for name, image in (("view", record.view),
+                                                                        ("final_view", record.final_view)))
     if not isinstance(record.success, (bool, np.bool_)):
         raise EpisodeValidationError(f"success must be a bool, got {type(record.success).__name__}")
 
@@ -262,6 +262,18 @@ def validate_record(record: EpisodeRecord, limits: PlanLimits = PlanLimits()) ->
             raise EpisodeValidationError(f"attribute names must be non-empty str without '/', got {key!r}")
         attrs[key] = normalize_attr(key, value)
     return EpisodeRecord(frames=frames, actions=actions, states=states, success=bool(record.success), attrs=attrs,
-                         view=view)
+                         view=view, final_view=final_view)
+
+
+def _one_image(name: str, image: np.ndarray | None) -> np.ndarray | None:
+    """An optional single image as ``(1, H, W, 3)`` uint8, or the rule it breaks."""
+    if image is None:
+        return None
+    image = np.asarray(image)
+    if image.ndim == 3:
+        image = image[None]
+    if image.dtype != np.uint8 or image.ndim != 4 or image.shape[0] != 1 or image.shape[-1] != 3 or 0 in image.shape:
+        raise EpisodeValidationError(f"{name} must be one uint8 RGB image (1, H, W, 3), got {image.dtype} {image.shape}")
+    return image
 
 

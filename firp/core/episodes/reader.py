@@ -16,6 +16,7 @@ from firp.core.episodes.layout import (
     IMAGE_KEY,
     RESERVED_DEMO_ATTRS,
     VIEW_KEY,
+    FINAL_VIEW_KEY,
     EpisodeRecord,
     EpisodeValidationError,
     demo_index,
@@ -119,6 +120,18 @@ class EpisodeDataset:
             raise KeyError(f"{self.path} has no view image ({VIEW_KEY}): collect it with --view-size")
         return obs[VIEW_KEY][0]
 
+    @property
+    def has_final_view(self) -> bool:
+        """Whether the episodes carry the settled final scene at the view's resolution (:data:`FINAL_VIEW_KEY`)."""
+        return bool(self._names) and FINAL_VIEW_KEY in self._data[self._names[0]]["obs"]
+
+    def final_view(self, name_or_index: str | int) -> np.ndarray:
+        """The settled final scene at the view's resolution, uint8 ``(H', W', 3)`` (an Oracle's input)."""
+        obs = self._data[self._resolve(name_or_index)]["obs"]
+        if FINAL_VIEW_KEY not in obs:
+            raise KeyError(f"{self.path} has no final view ({FINAL_VIEW_KEY}): collect it with --final-view")
+        return obs[FINAL_VIEW_KEY][0]
+
     def actions(self, name_or_index: str | int) -> np.ndarray:
         """The executed plan, float32 ``(T, 16)``."""
         return self._data[self._resolve(name_or_index)]["actions"][()]
@@ -141,6 +154,7 @@ class EpisodeDataset:
             success=self.success(name),
             attrs=self.demo_attrs(name),
             view=self.view(name)[None] if VIEW_KEY in self._data[name]["obs"] else None,
+            final_view=self.final_view(name)[None] if FINAL_VIEW_KEY in self._data[name]["obs"] else None,
         )
 
     # whole dataset ---------------------------------------------------------------------------
@@ -180,8 +194,9 @@ class EpisodeDataset:
             for start in range(0, images.shape[0], HASH_BLOCK_FRAMES):
                 block = np.ascontiguousarray(images[start : start + HASH_BLOCK_FRAMES], dtype=np.uint8)
                 h.update(block.tobytes())
-            if VIEW_KEY in demo["obs"]:
-                view = demo["obs"][VIEW_KEY]
-                h.update(b"view" + repr(view.shape).encode("ascii"))
-                h.update(np.ascontiguousarray(view[()], dtype=np.uint8).tobytes())
+            for key, tag in ((VIEW_KEY, b"view"), (FINAL_VIEW_KEY, b"final_view")):
+                if key in demo["obs"]:
+                    view = demo["obs"][key]
+                    h.update(tag + repr(view.shape).encode("ascii"))
+                    h.update(np.ascontiguousarray(view[()], dtype=np.uint8).tobytes())
         return h.hexdigest()

@@ -21,6 +21,7 @@ from firp.core.episodes.layout import (
     IMAGE_KEY,
     PART_RE,
     VIEW_KEY,
+    FINAL_VIEW_KEY,
     EpisodeRecord,
     EpisodeValidationError,
     demo_index,
@@ -53,9 +54,10 @@ def _write_demo_group(group: h5py.Group, record: EpisodeRecord, compression_leve
     obs.create_dataset(
         IMAGE_KEY, data=record.frames, chunks=(1, h, w, c), compression="gzip", compression_opts=compression_level
     )
-    if record.view is not None:
-        obs.create_dataset(VIEW_KEY, data=record.view, chunks=record.view.shape, compression="gzip",
-                           compression_opts=compression_level)
+    for key, image in ((VIEW_KEY, record.view), (FINAL_VIEW_KEY, record.final_view)):
+        if image is not None:
+            obs.create_dataset(key, data=image, chunks=image.shape, compression="gzip",
+                               compression_opts=compression_level)
     group.create_dataset("actions", data=record.actions)
     group.create_dataset("states", data=record.states)
     group.attrs["num_samples"] = np.int64(record.actions.shape[0])
@@ -149,11 +151,10 @@ def _copy_demo(src: h5py.Group, dst_parent: h5py.Group, name: str) -> None:
     src.file.copy(src, dst_parent, name=name)
 
 
-def _demo_shape(group: h5py.Group) -> tuple[tuple[int, ...], int, tuple[int, ...] | None]:
-    """What must be one across a dataset: the frames' image size, the state width and the view's size."""
-    view = group["obs"].get(VIEW_KEY)
-    return (tuple(group["obs"][IMAGE_KEY].shape[1:]), int(group["states"].shape[1]),
-            tuple(view.shape) if view is not None else None)
+def _demo_shape(group: h5py.Group) -> tuple[tuple[int, ...], int, tuple]:
+    """What must be one across a dataset: the frames' image size, the state width and the views' sizes."""
+    views = tuple(tuple(group["obs"][k].shape) if k in group["obs"] else None for k in (VIEW_KEY, FINAL_VIEW_KEY))
+    return tuple(group["obs"][IMAGE_KEY].shape[1:]), int(group["states"].shape[1]), views
 
 
 def consolidate(
