@@ -11,6 +11,7 @@ from firp.model.config import (
     FIRPConfig,
     HeadConfig,
     LossConfig,
+    PlanEventsConfig,
     RSSMConfig,
 )
 from firp.model.encoder import (
@@ -23,13 +24,16 @@ from firp.model.encoder import (
 )
 from firp.model.firp import FIRP, Score, first_step
 from firp.model.head import SuccessHead
+from firp.model.kinematics import ChainFK
 from firp.model.ops import plan_categories
+from firp.model.plan_events import PlanEvents
 from firp.model.rssm import RSSM, sample_overshooting_distances
 
 __all__ = [
     "AMLP",
     "AMLPImage",
     "BaselineConfig",
+    "ChainFK",
     "EfficientNetLite0Backbone",
     "EncoderConfig",
     "FIRP",
@@ -41,6 +45,8 @@ __all__ = [
     "LossConfig",
     "MODEL_KINDS",
     "Oracle",
+    "PlanEvents",
+    "PlanEventsConfig",
     "RSSM",
     "RSSMConfig",
     "Score",

@@ -94,7 +94,7 @@ def test_plan_geometry_protocol_and_the_geometry_only_yardstick(tiny_dataset, tm
               "--out", str(out), "--cache-dir", str(tmp_path / "cache"), "--no-progress"]
     with pytest.raises(SystemExit):
         main([*common, "--methods", "geometry_mlp", "--no-plan-geometry"])
-    assert "geometry_mlp reads the plan's grasp-frame description" in capsys.readouterr().err
+    assert "geometry_mlp reads the plan's description or events" in capsys.readouterr().err
     assert main([*common, "--methods", "geometry_mlp", "firp_tcr"]) == 0  # the product preset reads it
     results = json.loads((out / "results.json").read_text())
     assert results["preset"] == "product" and results["overrides"] == {"epochs": 1, "image_size": 32}
@@ -126,6 +126,15 @@ def test_presets_and_flags_make_one_recipe():
     assert product.epochs == 100 and not product.model.geometry.enabled and product.model.loss.overshooting == 0.0
     assert product.model.action_chunk == PRESETS["product"].train.model.action_chunk == 8
     assert recipe_flags("product", overrides) == "--preset product --epochs 100 --no-plan-geometry --lambda 0.0"
+    generic, none = recipe_from(parser.parse_args(["--data", "x", "--preset", "generic"]))
+    assert none == {} and generic.model.events.enabled and not generic.model.geometry.enabled
+    assert generic.model.action_chunk == product.model.action_chunk  # product, but for how it reads the plan
+    events, overrides = recipe_from(parser.parse_args(["--data", "x", "--plan-events", "--plan-view"]))
+    assert events.model.events.enabled and events.model.events.view and not events.model.geometry.enabled
+    with pytest.raises(ValueError, match="not both"):
+        recipe_from(parser.parse_args(["--data", "x", "--plan-events", "--plan-geometry"]))
+    with pytest.raises(ValueError, match="--plan-view"):
+        recipe_from(parser.parse_args(["--data", "x", "--preset", "paper", "--plan-view"]))
 
 
 def test_runs_as_ray_tasks_equal_the_sequential_run(tiny_dataset, tmp_path):
@@ -152,3 +161,27 @@ def test_the_bar_over_the_best_baseline_follows_the_datasets_world():
             {"method": "oracle", "test_balanced_accuracy": 0.99}]
     assert target_line(rows, 0.02) == "firp_ensemble − best non-oracle baseline (gru) = +0.030 (target ≥ +0.02: met)"
     assert target_line(rows, 0.05).endswith("(target ≥ +0.05: not met)")
+
+
+def test_the_generic_preset_on_a_set_of_mostly_initial_frames(tiny_dataset, tmp_path):
+    """``firp collect --framed`` data end to end: the events read through the dataset's chain, every model on the
+    same splits, the Oracle on the framed episodes of each split only."""
+    from firp.core.episodes import EpisodeDataset, consolidate, write_episode_part
+    from tests.firp.model.test_plan_events import PANDA
+
+    with EpisodeDataset(tiny_dataset) as ds:
+        for i, name in enumerate(ds.demo_names):
+            record = ds.episode(name)
+            if i % 2:
+                record.frames = record.frames[:1].copy()
+            write_episode_part(tmp_path / "parts", i, record)
+    data = tmp_path / "mixed.h5"
+    consolidate(tmp_path / "parts", data, {"fps": 4, "T": 10, "task": "stacking", "kinematics": PANDA})
+    out = tmp_path / "eval"
+    assert main(["--data", str(data), "--preset", "generic", "--repeats", "1", "--epochs", "1", "--threads", "1",
+                 "--image-size", "32", "--methods", "geometry_mlp", "firp", "oracle", "--out", str(out),
+                 "--cache-dir", str(tmp_path / "cache"), "--no-progress", "--device", "cpu"]) == 0
+    rows = {r["method"]: r for r in json.loads((out / "results.json").read_text())["rows"]}
+    assert rows["firp"]["config"]["model"]["events"]["kinematics"] == PANDA
+    assert rows["firp"]["n_test"] == 4 and rows["oracle"]["n_test"] == 2  # the framed half of the test split
+    assert all(i % 2 == 0 for i in rows["oracle"]["test_index"] + rows["oracle"]["valid_index"])
