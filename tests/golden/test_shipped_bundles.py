@@ -143,3 +143,41 @@ def test_the_fused_path_on_the_shipped_configuration_equals_the_members_forward_
     assert weights.max(axis=1).min() > 10 / plans.shape[1]
     assert np.abs(weights - weights[[1, 2, 3, 4, 5, 0]]).max() > 0.05
     assert np.ptp(probs.mean(0)) > 0.3  # and the candidates' scores differ: a ranking, not a constant
+
+
+def test_the_generic_bundle_is_the_generic_preset_on_the_world_s_own_chain():
+    """``models/stacking_generic``: every member is the generic preset (the loss weights are the study's), reads the
+    plan's events and no hand-built description, through the chain the world reads off its robot model."""
+    import dataclasses
+    from pathlib import Path
+
+    from firp.model.config import FIRPConfig
+    from firp.presets import PRESETS
+
+    chain = json.loads((Path(__file__).parent / "panda_chain.json").read_text())
+    want = PRESETS["generic"].train.model
+    manifest = json.loads((Path(shipped_bundle_dir("stacking")).parent / "stacking_generic" / "manifest.json").read_text())
+    for member in manifest["members"]:
+        got = FIRPConfig.from_dict(member["config"])
+        assert got.events.kinematics == chain and not got.geometry.enabled
+        assert dataclasses.replace(got, loss=want.loss, events=dataclasses.replace(got.events, kinematics=None)) == want
+
+
+@pytest.mark.parametrize("seed", [100_000, 100_003])
+def test_the_generic_bundle_scores_the_main_job_s_candidates_as_recorded(worlds, seed):
+    """Its fused path equals each member's own forward pass, and the scores of the main job's recorded candidates
+    come back."""
+    from pathlib import Path
+
+    from firp.serving import EnsembleScorer
+
+    bundle = load_bundle(Path(shipped_bundle_dir("stacking")).parent / "stacking_generic")
+    image, plans = _scene_and_candidates(worlds, seed)
+    fused = EnsembleScorer(bundle, strategy="fused")
+    got = fused.score(image, plans)
+    loop = EnsembleScorer(bundle, strategy="loop").score(image, plans)
+    np.testing.assert_allclose(got.member_probabilities, loop.member_probabilities, atol=1e-5, rtol=0)
+    record = next(r for r in read_jsonl("main_job/stacking-50-generic.jsonl") if r["seed"] == seed)
+    recorded = {tuple(json.loads(k)): v for k, v in record["candidate_scores"].items()}
+    for order, p in zip(block_orders(), got.probabilities):
+        assert p == pytest.approx(recorded[tuple(order)], abs=2e-5), order
