@@ -184,6 +184,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--learners", nargs="+", default=list(LEARNERS[:4]), choices=LEARNERS)
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--view-window", type=float, default=None,
+                        help="the view's crops span this many metres (default: the preset's, 0.08)")
+    parser.add_argument("--view-crop", type=int, default=None, help="... at this many pixels (default 48)")
     parser.add_argument("--min-steps", type=int, default=1500,
                         help="the networks' optimizer steps before early stopping may end their training")
     parser.add_argument("--out", type=Path, required=True, help="JSON lines, one per (learner, size, repeat)")
@@ -200,18 +203,22 @@ def main(argv: list[str] | None = None) -> int:
         attrs = ds.attrs
     command = shlex.join(["python", "-m", "experiments.plan_reading_curves", *(argv if argv is not None else sys.argv[1:])])
     done = {(r["learner"], r["size"], r["repeat"]) for r in read_records(args.out)}
+    suffix = f"@{args.view_window}m" if args.view_window else ""
     cache: dict[str, object] = {}
     for repeat in range(args.repeats):
         test, trains = split_pool(y, args.sizes, repeat)
         for size in args.sizes:
             fit, valid = inner_split(y, trains[size], repeat)
             for learner in args.learners:
-                if (learner, size, repeat) in done:
+                if (learner + (suffix if "view" in learner else ""), size, repeat) in done:
                     continue
                 started = time.perf_counter()
+                view = {k: v for k, v in (("view_window", args.view_window), ("view_crop", args.view_crop))
+                        if v is not None}
                 result = run_learner(learner, actions, y, attrs, args.data, fit, valid, test, repeat, cache,
-                                     args.min_steps)
-                record = {"learner": learner, "size": size, "repeat": repeat, "n_fit": len(fit), "n_valid": len(valid),
+                                     args.min_steps, view)
+                record = {"learner": learner + (suffix if "view" in learner else ""),
+                          "size": size, "repeat": repeat, "n_fit": len(fit), "n_valid": len(valid),
                           "n_test": len(test), **result, "seconds": round(time.perf_counter() - started, 1),
                           "dataset": str(args.data), "command": command}
                 append_record(args.out, record)
@@ -233,7 +240,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run_learner(learner: str, actions: np.ndarray, y: np.ndarray, attrs: dict, data: Path, fit: np.ndarray,
-                valid: np.ndarray, test: np.ndarray, repeat: int, cache: dict, min_steps: int = 1500) -> dict:
+                valid: np.ndarray, test: np.ndarray, repeat: int, cache: dict, min_steps: int = 1500,
+                view: dict | None = None) -> dict:
     source, kind = learner.split(":")
     if source == "raw":
         return fit_gb(raw_plan(actions), y, fit, valid, test)
@@ -260,7 +268,7 @@ def run_learner(learner: str, actions: np.ndarray, y: np.ndarray, attrs: dict, d
     if ("views", final) not in cache:
         cache[("views", final)] = view_inputs(data, attrs, final)
     inputs.update(cache[("views", final)])
-    cfg = replace(cfg, view=True)
+    cfg = replace(cfg, view=True, **(view or {}))
     return fit_net(lambda: EventClassifier(build_plan_events(cfg, actions.shape[-1])), inputs, y, fit, valid, test,
                    seed=repeat, min_steps=min_steps)
 

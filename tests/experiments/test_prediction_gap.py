@@ -46,8 +46,9 @@ def test_first_only_ignores_the_later_frames_and_real_reads_them(tiny_dataset, e
     (ckpt,) = find_checkpoints(evaluated / "eval", ("firp",))[0]
     model = load_model(ckpt)
     data = load_sequences(tiny_dataset, model.cfg.encoder, evaluated / "cache", progress=False)
-    changed = type(data)(data.features.clone(), data.actions, data.labels, data.dataset_hash, data.demo_names)
-    changed.features[:, 1:] = torch.randn_like(changed.features[:, 1:]) * 5
+    frames = data.features[torch.arange(len(data))].clone()  # (N, T, Db)
+    frames[:, 1:] = torch.randn_like(frames[:, 1:]) * 5
+    changed = type(data)(frames, data.actions, data.labels, data.dataset_hash, data.demo_names)
     assert gap.head_scores(model, data, "first_only") == pytest.approx(gap.head_scores(model, changed, "first_only"))
     assert gap.head_scores(model, data, "real") != pytest.approx(gap.head_scores(model, changed, "real"))
 
