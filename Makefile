@@ -21,7 +21,7 @@ PYTEST_ARGS ?=
 # and PostgreSQL's server, which the tests start for Optuna studies shared by several workers.
 APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libosmesa6 docker-compose postgresql
 
-.PHONY: install robosuite-install system-deps test test-main test-robosuite run compose-smoke docs clean
+.PHONY: install robosuite-install system-deps test test-fast test-main test-robosuite run compose-smoke docs clean
 
 install: $(PIP_STAMP)
 
@@ -59,6 +59,16 @@ test: test-main test-robosuite
 
 test-main: install
 	MUJOCO_GL=$(MUJOCO_GL) $(VENV_PY) -m pytest -q --ignore=tests/robosuite_worker $(PYTEST_ARGS)
+
+# The edit loop: every package's tests but the slow and golden ones (markers in pyproject.toml); the
+# robosuite world's too where its environment was made (`make robosuite-install`). `make test` stays
+# the whole suite and what CI runs.
+FAST := -m "not slow and not golden"
+test-fast: install
+	MUJOCO_GL=$(MUJOCO_GL) $(VENV_PY) -m pytest -q --ignore=tests/robosuite_worker $(FAST) $(PYTEST_ARGS)
+	@if [ -x $(RS_VENV)/bin/python ]; then \
+		MUJOCO_GL=$(MUJOCO_GL) PYOPENGL_PLATFORM=$(MUJOCO_GL) $(RS_VENV)/bin/python -m pytest -q tests/robosuite_worker $(FAST) $(PYTEST_ARGS); \
+	else echo ">> tests/robosuite_worker skipped: no $(RS_VENV) (make robosuite-install makes it)"; fi
 
 test-robosuite: robosuite-install
 	MUJOCO_GL=$(MUJOCO_GL) PYOPENGL_PLATFORM=$(MUJOCO_GL) $(RS_VENV)/bin/python -m pytest -q tests/robosuite_worker $(PYTEST_ARGS)

@@ -23,6 +23,7 @@ print("LOADED", "torch" in sys.modules, "mujoco" in sys.modules)
 @pytest.mark.parametrize("command, torch_free", [("run", True), ("collect", True), ("sim", True), ("robosuite", True),
                                                  ("tune", False), ("certify", False),
                                                  ("evaluate", False), ("serve", False)])
+@pytest.mark.slow
 def test_each_subcommand_shows_its_own_options_and_imports_only_its_part(command, torch_free):
     out = subprocess.run([sys.executable, "-c", PROBE.format(command=command)], capture_output=True, text=True,
                          timeout=120)

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out
+
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("firp", "world_api", "sim_worker", "planner_client", "service", "firp_cli", "experiments")
 WORLD, PLANNER, SERVICE, METHOD = "sim_worker", "planner_client", "service", "firp"

@@ -31,6 +31,8 @@ from world_api.app import create_world_app
 from world_api.backend import EpisodeStart, Outcome
 from world_api.settings import WorldSettings
 
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out
+
 PLAN = valid_plans(1, 10)[0]
 
 

@@ -70,6 +70,7 @@ def test_a_training_share_is_stratified_nested_and_fixed_per_split():
     assert (~labels[training_share(labels, train, 0.01, 0)]).sum() == 1  # every class keeps an episode
 
 
+@pytest.mark.slow
 def test_the_learning_curve_ends_at_the_full_study_and_is_drawn(tiny_dataset, tmp_path):
     out, plot = tmp_path / "curve.json", tmp_path / "curve.png"
     assert main(["--data", str(tiny_dataset), "--repeats", "2", "--seeds", "3", "--out", str(tmp_path / "full.json")]) == 0

@@ -11,6 +11,8 @@ from experiments.grasp_clearance import (by_bins, clearance_and_heights, describ
                                          true_halves)
 from firp.core.episodes import EpisodeDataset
 
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out
+
 
 def test_bins_count_every_plan_once_and_their_success_rates():
     finger = np.array([-0.02, -0.007, -0.001, 0.002, 0.007, 0.015, 0.05, 0.03])

@@ -7,11 +7,15 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from experiments.bundle_generations import main as generations_main
 from experiments.exploration_value import main as exploration_main
 from experiments.learning_rounds import candidate_auc, candidate_auc_interval, main, success_interval
 from firp.tune import main as tune_main
 from tests.firp.learnable import T, learnable_dataset
+
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out
 
 
 def test_candidate_auc_pools_every_executed_candidate():

@@ -12,6 +12,7 @@ from experiments import plan_reading_curves
 from firp.core.episodes import EpisodeRecord, consolidate, write_episode_part
 from planner_client.loop import read_records
 from tests.firp.model.test_plan_events import PANDA, overhead_camera, panda_plans
+import pytest
 
 
 def synthetic_dataset(root: Path, n: int = 90) -> Path:
@@ -34,6 +35,7 @@ def synthetic_dataset(root: Path, n: int = 90) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_the_curves_put_every_learner_on_one_test_set_and_resume(tmp_path, capsys):
     data = synthetic_dataset(tmp_path)
     out = tmp_path / "curves.jsonl"

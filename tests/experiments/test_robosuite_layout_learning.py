@@ -11,6 +11,8 @@ import pytest
 from experiments.robosuite_layout_learning import (INPUTS, LEARNERS, clutter_features, feature_table, fit,
                                                    gain_per_doubling, learning_curve, main)
 
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out
+
 OBJECTS = ["Bread", "Can", "Cereal", "Milk"]
 SCENE = {"bin1": [0.1, -0.25, 0.8], "bin_size": [0.39, 0.49],
          "objects": {"Bread": {"half": [0.024, 0.02, 0.024]}, "Can": {"half": [0.026, 0.026, 0.04]},

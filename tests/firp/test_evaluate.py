@@ -7,6 +7,8 @@ import pytest
 
 from firp.evaluate import main, split_indices
 
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out
+
 
 
 def test_splits_are_disjoint_stratified_and_cover_everything():

@@ -26,6 +26,8 @@ from firp.metrics import balanced_accuracy, choose_threshold, expected_calibrati
 
 from .learnable import learnable_dataset
 
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out
+
 LEARNT = 0.8  # every method that can see the cue
 CHANCE = 0.72  # no single method above this when nothing shows the label (32 test episodes)
 EVERY_METHOD = ("a_mlp", "a_mlp_image", "gru", "firp", "firp_tcr", "oracle")

@@ -20,6 +20,8 @@ from firp.refresh import EXIT_KEPT, main as refresh_main
 from firp.tune import main as tune_main
 from tests.firp.learnable import SIZE, T, learnable_dataset
 
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out
+
 SCENES, CANDIDATES = 16, 3
 
 

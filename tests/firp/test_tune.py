@@ -7,8 +7,10 @@ from firp.bundle import load_bundle
 from firp.serving import EnsembleScorer
 from firp.core.episodes import EpisodeDataset
 from firp.tune import SPACES, main, top_trials
+import pytest
 
 
+@pytest.mark.slow
 def test_tune_export_load_score(tiny_dataset, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     storage = f"sqlite:///{tmp_path / 'study.db'}"
@@ -55,6 +57,7 @@ def test_product_space_also_tunes_the_prediction_weight(tiny_dataset, tmp_path, 
         assert t.params["lr"] in SPACES["product"]["lr"]
 
 
+@pytest.mark.slow
 def test_an_exported_bundle_carries_decision_evidence_that_certify_reproduces(tiny_dataset, tmp_path, monkeypatch):
     """The export measures the evidence on the training path's features; ``firp certify`` measures it again
     through the serving path and must find the same balanced accuracy (else it refuses)."""

@@ -40,6 +40,7 @@ def _complete(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
     return study.get_trials(states=(COMPLETE,))
 
 
+@pytest.mark.slow
 def test_two_workers_share_one_study_without_losing_or_repeating_a_trial(tiny_dataset, tmp_path, postgres_url):
     argv = _argv(tiny_dataset, tmp_path, postgres_url, "shared", trials=6)
     env = {**os.environ, "PYTHONPATH": str(ROOT)}

@@ -13,6 +13,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "docs" / "results"
 
@@ -24,3 +26,11 @@ def read_json(relative: str) -> dict:
 def read_jsonl(relative: str, first: int | None = None) -> list[dict]:
     lines = (RESULTS / relative).read_text().splitlines()
     return [json.loads(line) for line in lines[:first]]
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Every test under tests/golden is a golden replay (``-m "not golden"`` leaves them out)."""
+    here = Path(__file__).parent
+    for item in items:
+        if here in Path(item.fspath).parents:
+            item.add_marker(pytest.mark.golden)

@@ -33,6 +33,7 @@ def sim(launcher):
 
 
 # -- SimClient against the real sim worker ----------------------------------------------------------
+@pytest.mark.slow
 def test_remote_and_embedded_backends_give_the_same_episode_and_label(sim, planner):
     embedded = EmbeddedSim()
     try:

@@ -15,6 +15,8 @@ from firp.core.episodes import EpisodeDataset
 from planner_client.__main__ import main as cli_main
 from planner_client.collect import CollectConfig, collect, episode_order
 
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out
+
 TINY = dict(horizon=24, image_size=24, workers=1)
 
 

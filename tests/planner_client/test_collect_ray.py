@@ -15,6 +15,8 @@ from firp.core.episodes import EpisodeDataset
 from planner_client.__main__ import main as cli_main
 from planner_client.collect import CollectConfig, collect
 
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out
+
 ray = pytest.importorskip("ray", reason="the ray extra is not installed")
 
 TINY = dict(horizon=24, image_size=24, workers=2)

@@ -33,6 +33,7 @@ def test_servers_log_under_the_run_directory(launcher):
     assert launcher.sim_url.startswith("http://127.0.0.1:")
 
 
+@pytest.mark.slow
 def test_a_killed_sim_worker_is_restarted_and_the_trial_goes_on(launcher):
     """Mid-trial: the episode was started and executed once, then the worker is SIGKILLed. The next
     execution restarts the worker on a new port, re-creates the episode and gives the same label."""
@@ -74,6 +75,7 @@ def test_a_server_that_dies_at_start_is_reported_with_its_log(tmp_path):
     assert str(tmp_path / "broken.log") in message
 
 
+@pytest.mark.slow
 def test_a_failing_service_stops_the_whole_launch(tmp_path):
     """A scoring service that cannot start (here: a bundle that does not exist, or no service
     package yet) fails the launch with its log, and the sim worker already spawned is stopped."""

@@ -316,6 +316,7 @@ def test_summary_without_scoring_or_accepted_trials():
 
 
 # -- a killed sim worker mid-run -----------------------------------------------------------------------
+@pytest.mark.slow
 def test_a_sim_worker_killed_mid_run_loses_no_trial(tmp_path, launcher, scorer):
     sim = launcher.sim(retry=FAST)
     planner = TampPlanner(PlannerConfig(horizon=T))
@@ -335,6 +336,7 @@ def test_a_sim_worker_killed_mid_run_loses_no_trial(tmp_path, launcher, scorer):
     assert launcher.sim_restarts == restarts + 1
 
 
+@pytest.mark.slow
 def test_a_scoring_service_killed_mid_run_loses_no_trial(tmp_path, sim_and_planner, tiny_bundle):
     """The launched service is SIGKILLed after the first trial: the next score restarts it on a new
     port, the run goes on, and the restarted service scores the same plan exactly as before."""
@@ -363,6 +365,7 @@ def test_a_scoring_service_killed_mid_run_loses_no_trial(tmp_path, sim_and_plann
 
 
 # -- the CLI -------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_cli_launches_both_services_runs_and_writes_the_report(tmp_path, tiny_bundle, capsys):
     out = tmp_path / "runs" / "run.jsonl"
     code = main(["run", "--trials", "2", "--horizon", str(T), "--max-iterations", "2", "--threshold", "1.01",
@@ -587,6 +590,7 @@ def test_an_uninformative_bundle_executes_tamps_first_plan_and_the_summary_says_
 
 
 # -- trials in parallel ----------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_trials_in_parallel_on_two_sim_workers_equal_a_sequential_run(tmp_path, scorer):
     planner = TampPlanner(PlannerConfig(horizon=T))
     config = dict(trials=4, max_iterations=3, threshold=0.5, seed=20)
@@ -609,6 +613,7 @@ def test_trials_in_parallel_on_two_sim_workers_equal_a_sequential_run(tmp_path, 
     assert len({r["request_id"] for r in parallel}) == 4
 
 
+@pytest.mark.slow
 def test_cli_parallel_launches_k_sim_workers_and_one_service(tmp_path, tiny_bundle):
     out = tmp_path / "runs" / "run.jsonl"
     assert main(["run", "--trials", "3", "--horizon", str(T), "--max-iterations", "2", "--threshold", "1.01",

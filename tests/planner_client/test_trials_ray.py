@@ -19,6 +19,8 @@ from planner_client.tamp import PlannerConfig, TampPlanner
 
 from .records import assert_same_trials
 
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out
+
 ray = pytest.importorskip("ray", reason="the ray extra is not installed")
 
 T = 16  # inside the tiny bundle's T range (8, 16)

@@ -13,10 +13,13 @@ import threading
 import time
 
 import httpx
+import pytest
 
 from tests.processes import ROOT, ServedProcess, clean_env
 
 from .helpers import plan_list, png_b64
+
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out
 
 SERVE = ["--host", "127.0.0.1", "--port", "0"]
 

@@ -10,9 +10,12 @@ import time
 
 import httpx
 import numpy as np
+import pytest
 
 from firp.core.contract import make_plan
 from tests.processes import ServedProcess, clean_env
+
+pytestmark = pytest.mark.slow  # make test-fast leaves this module out
 
 
 def _pending(base: str) -> int:

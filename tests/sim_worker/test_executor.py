@@ -68,6 +68,7 @@ _CHILD = textwrap.dedent("""
 """ % SHORT_T)
 
 
+@pytest.mark.slow
 def test_determinism_across_processes():
     env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
     outs = [json.loads(subprocess.run([sys.executable, "-c", _CHILD], capture_output=True, text=True, check=True,

@@ -258,6 +258,7 @@ def _inside(point: np.ndarray, polygon: np.ndarray) -> bool:
     return bool(np.all(edges[:, 0] * to_point[:, 1] - edges[:, 1] * to_point[:, 0] >= 0))
 
 
+@pytest.mark.slow
 def test_signed_distance_agrees_with_dense_sampling():
     """Random turned rectangles: apart, the distance is the nearest pair of boundary points; overlapping,
     it is negative."""
