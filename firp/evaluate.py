@@ -284,8 +284,10 @@ def main(argv: list[str] | None = None) -> int:
     table = f"{table}\n\n{ENSEMBLE}: mean score of the FIRP variants of each repeat ({', '.join(FIRP_VARIANTS)}).\n" \
             f"{bar}" if any(r["method"] == ENSEMBLE for r in rows) else f"{table}\n\n{bar}"
     print(table)
-    command = f"firp evaluate --data {args.data} --repeats {args.repeats} --methods {' '.join(args.methods)} " \
-              f"{recipe_flags(args.preset, overrides)} --threads {args.threads}"
+    covered = sorted({repeat for repeat, _ in done})
+    only = f" --only-repeats {' '.join(map(str, covered))}" if len(covered) < args.repeats else ""
+    command = f"firp evaluate --data {args.data} --repeats {args.repeats}{only} --methods {' '.join(args.methods)} " \
+              f"{recipe_flags(args.preset, overrides)} --threads {args.threads}"  # reproduces the table's repeats
     (out / "results.json").write_text(json.dumps({
         "command": command, "preset": args.preset, "overrides": overrides, "dataset": str(args.data), "env": env,
         "dataset_hash": data.dataset_hash,

@@ -56,8 +56,11 @@ def test_only_repeats_trains_its_share_and_summarises_all(tiny_dataset, tmp_path
               "--image-size", "32", "--out", str(out), "--cache-dir", str(tmp_path / "cache"), "--no-progress"]
     assert main([*common, "--only-repeats", "1"]) == 0
     assert not (out / "r0-a_mlp.json").exists() and (out / "r1-a_mlp.json").exists()
+    # the record's command reproduces the repeats its table covers
+    assert "--repeats 2 --only-repeats 1 --methods" in json.loads((out / "results.json").read_text())["command"]
     assert main([*common, "--only-repeats", "0"]) == 0
-    assert [r["repeat"] for r in json.loads((out / "results.json").read_text())["rows"]] == [0, 1]
+    results = json.loads((out / "results.json").read_text())
+    assert [r["repeat"] for r in results["rows"]] == [0, 1] and "--only-repeats" not in results["command"]
     with pytest.raises(SystemExit):
         main([*common, "--only-repeats", "2"])
     assert "--only-repeats: every index must be < --repeats (2)" in capsys.readouterr().err
