@@ -150,7 +150,20 @@ class PlanEvents(nn.Module):
             raise ValueError("this model " + ("reads" if self.view is not None else "does not read")
                              + " the plan-conditioned view: pass view and projection accordingly")
         hand: list[Tensor] = []
-        tokens, pairs, present = self.raw_features(actions, mask, hand)
+        raw = self.raw_features(actions, mask, hand)
+        return self.read(*raw, hand=hand, view=view, projection=projection, augment=augment)
+
+    def reads_like(self, other: PlanEvents) -> bool:
+        """Whether ``other`` computes the same :meth:`raw_features` (same chain, events and plan columns), so an
+        ensemble computes them once for every member."""
+        return (self.cfg.kinematics == other.cfg.kinematics and self.cfg.max_events == other.cfg.max_events
+                and (self.n_categories, self.n_joints, self.n_gripper)
+                == (other.n_categories, other.n_joints, other.n_gripper))
+
+    def read(self, tokens: Tensor, pairs: Tensor, present: Tensor, hand: list | None = None,
+             view: Tensor | None = None, projection: Tensor | None = None, augment: bool = False) -> Tensor:
+        """:meth:`raw_features`' output -> the plan's vector ``(B, 2 H)``: this model's standardisation and
+        networks (``hand`` as :meth:`raw_features` filled it, where the view is read)."""
         tokens = ((tokens - self.token_mean) / self.token_std).clamp(-STANDARD_CLIP, STANDARD_CLIP)
         pairs = ((pairs - self.pair_mean) / self.pair_std).clamp(-STANDARD_CLIP, STANDARD_CLIP)
         if self.view is not None:

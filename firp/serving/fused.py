@@ -180,6 +180,7 @@ class FusedFIRP:
             # plans alike, checked above: one of them computes it for all), or each member's learned events; then
             # each member's MLP
             self.events = [m.geometry for m in models] if isinstance(m0.geometry, PlanEvents) else None
+            self.shared_events = self.events is not None and all(e.reads_like(self.events[0]) for e in self.events)
             self.describe = m0.geometry.describe if m0.geometry is not None and self.events is None else None
             if self.describe is not None:
                 self.g_mean = torch.stack([m.geometry.mean for m in models])[:, None, :]  # (M, 1, G)
@@ -246,6 +247,9 @@ class FusedFIRP:
         if self.describe is not None or self.events is not None:
             if self.describe is not None:  # the description is computed once for every member
                 z = standardise(self.describe(actions).unsqueeze(0), self.g_mean, self.g_std)  # (M, N, G)
+            elif self.shared_events:  # the events' poses and relations once, each member's networks on them
+                raw = self.events[0].raw_features(actions)
+                z = torch.stack([events.read(*raw) for events in self.events])  # (M, N, C)
             else:  # each member's own learned reading of the plan
                 z = torch.stack([events(actions) for events in self.events])  # (M, N, C)
             c = torch.baddbmm(self.b_c1, z, self.w_c1)  # (M, N, Hc)
