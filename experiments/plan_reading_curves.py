@@ -203,22 +203,21 @@ def main(argv: list[str] | None = None) -> int:
         attrs = ds.attrs
     command = shlex.join(["python", "-m", "experiments.plan_reading_curves", *(argv if argv is not None else sys.argv[1:])])
     done = {(r["learner"], r["size"], r["repeat"]) for r in read_records(args.out)}
-    suffix = f"@{args.view_window}m" if args.view_window else ""
+    suffix = f"@{args.view_window}m" if args.view_window else ""  # a learner with a view records its window
+    view = {k: v for k, v in (("view_window", args.view_window), ("view_crop", args.view_crop)) if v is not None}
     cache: dict[str, object] = {}
     for repeat in range(args.repeats):
         test, trains = split_pool(y, args.sizes, repeat)
         for size in args.sizes:
             fit, valid = inner_split(y, trains[size], repeat)
             for learner in args.learners:
-                if (learner + (suffix if "view" in learner else ""), size, repeat) in done:
+                name = learner + (suffix if "view" in learner else "")
+                if (name, size, repeat) in done:
                     continue
                 started = time.perf_counter()
-                view = {k: v for k, v in (("view_window", args.view_window), ("view_crop", args.view_crop))
-                        if v is not None}
                 result = run_learner(learner, actions, y, attrs, args.data, fit, valid, test, repeat, cache,
                                      args.min_steps, view)
-                record = {"learner": learner + (suffix if "view" in learner else ""),
-                          "size": size, "repeat": repeat, "n_fit": len(fit), "n_valid": len(valid),
+                record = {"learner": name, "size": size, "repeat": repeat, "n_fit": len(fit), "n_valid": len(valid),
                           "n_test": len(test), **result, "seconds": round(time.perf_counter() - started, 1),
                           "dataset": str(args.data), "command": command}
                 append_record(args.out, record)

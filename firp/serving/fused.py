@@ -126,6 +126,9 @@ class FusedFIRP:
                             "events, or none")
         if any(isinstance(m.geometry, PlanEvents) and m.geometry.view is not None for m in models):
             raise TypeError("members that read the plan-conditioned view are not fused")
+        events = [m.geometry for m in models if isinstance(m.geometry, PlanEvents)]
+        if not all(e.reads_like(events[0]) for e in events):
+            raise TypeError("fused members must read the plan's events alike (chain, max_events, plan columns)")
         described = [m.geometry for m in models if m.geometry is not None and not isinstance(m.geometry, PlanEvents)]
         if len({(g.max_picks, g.description, g.object_half) for g in described}) > 1:
             raise TypeError("fused members must describe the plan alike (max_picks, description, object_half)")
@@ -180,7 +183,6 @@ class FusedFIRP:
             # plans alike, checked above: one of them computes it for all), or each member's learned events; then
             # each member's MLP
             self.events = [m.geometry for m in models] if isinstance(m0.geometry, PlanEvents) else None
-            self.shared_events = self.events is not None and all(e.reads_like(self.events[0]) for e in self.events)
             self.describe = m0.geometry.describe if m0.geometry is not None and self.events is None else None
             if self.describe is not None:
                 self.g_mean = torch.stack([m.geometry.mean for m in models])[:, None, :]  # (M, 1, G)
@@ -247,11 +249,9 @@ class FusedFIRP:
         if self.describe is not None or self.events is not None:
             if self.describe is not None:  # the description is computed once for every member
                 z = standardise(self.describe(actions).unsqueeze(0), self.g_mean, self.g_std)  # (M, N, G)
-            elif self.shared_events:  # the events' poses and relations once, each member's networks on them
-                raw = self.events[0].raw_features(actions)
+            else:  # the events' poses and relations once (the members read alike, checked above), each member's
+                raw = self.events[0].raw_features(actions)  # own standardisation and networks on them
                 z = torch.stack([events.read(*raw) for events in self.events])  # (M, N, C)
-            else:  # each member's own learned reading of the plan
-                z = torch.stack([events(actions) for events in self.events])  # (M, N, C)
             c = torch.baddbmm(self.b_c1, z, self.w_c1)  # (M, N, Hc)
             if self.w_c2 is not None:
                 c = torch.baddbmm(self.b_c2, torch.relu(c), self.w_c2)

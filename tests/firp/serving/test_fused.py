@@ -217,7 +217,9 @@ def test_fused_members_reading_the_plan_s_events_equal_the_loop(tmp_path):
     a, b = fused.score(image, plans), loop.score(image, plans)
     np.testing.assert_allclose(a.member_probabilities, b.member_probabilities, atol=1e-5, rtol=0)
     np.testing.assert_allclose(a.weights, b.weights, atol=1e-5, rtol=0)
-    (unit,) = [u for _, u in fused.units if isinstance(u, FusedFIRP)]
-    assert unit.shared_events  # one chain and event count: the poses and relations computed once for all three
+    assert [type(u) for _, u in fused.units] == [FusedFIRP]  # one chain and event count: fused, poses computed once
     longer = dataclasses.replace(base, action_chunk=4, events=dataclasses.replace(EVENTS, max_events=EVENTS.max_events + 1))
-    assert not members[0].model.geometry.reads_like(build_model("firp", longer).geometry)
+    other = build_model("firp", longer).eval()
+    assert not members[0].model.geometry.reads_like(other.geometry)
+    with pytest.raises(TypeError, match="events alike"):
+        FusedFIRP([members[0].model, other])
